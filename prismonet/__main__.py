@@ -1,0 +1,3 @@
+from prismonet.cli import main
+
+raise SystemExit(main())

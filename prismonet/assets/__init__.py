@@ -1,0 +1,1 @@
+"""Files that ship with the package: the pre-trained Clevr shape prior (and later checkpoints)."""

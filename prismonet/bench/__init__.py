@@ -1,0 +1,1 @@
+"""Benchmarks, run as commands (``prismonet bench ...``), never as timed tests."""

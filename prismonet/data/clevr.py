@@ -1,0 +1,216 @@
+"""CLEVR-style scenes as in the paper's modified Clevr: sampling of the scene layout.
+
+Spheres, cylinders and cubes from the 27-shape Clevr set, in the eight CLEVR colours, rest on a
+flat-coloured ground plane at random yaw. Centres lie in ``[-area_half, area_half]^2`` and no two
+objects intersect (their bounding discs, or balls, keep ``min_gap`` apart). Another object may hide
+one completely. Rendering is in ``prismonet.data.raycast_gt``; this module only samples.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from prismonet.data.errors import PlacementError
+from prismonet.geometry.camera import Camera, intrinsics_matrix, look_at
+from prismonet.geometry.pose import random_rotation_axis_angle, rotation_from_axis_cos_sin
+from prismonet.shapes.clevr_set import clevr_shapes, shape_mesh
+
+GENERATOR_VERSION = "clevr-1"
+
+COLOR_NAMES: tuple[str, ...] = ("gray", "red", "blue", "green", "brown", "purple", "cyan", "yellow")
+COLOR_RGB: tuple[tuple[int, int, int], ...] = (
+    (87, 87, 87),
+    (173, 35, 35),
+    (42, 75, 215),
+    (29, 105, 20),
+    (129, 74, 25),
+    (129, 38, 192),
+    (41, 208, 208),
+    (255, 238, 51),
+)
+
+CLEVR_CAMERA_EYE = (7.4811, -6.5076, 5.3437)
+"""CLEVR's camera position (from its base scene), looking at the world origin."""
+
+DISC_PACKING_DENSITY = math.pi / (2.0 * math.sqrt(3.0))
+"""Densest packing of equal discs in the plane (hexagonal, ~0.9069): the upfront feasibility bound."""
+
+MAX_SCENE_ATTEMPTS = 200
+MAX_OBJECT_TRIES = 100
+
+
+@dataclass(frozen=True)
+class ClevrConfig:
+    """Settings of the CLEVR-style generator. Defaults follow the paper's modified Clevr."""
+
+    num_objects: int = 3
+    """Objects per scene (the paper's datasets use 2 to 5)."""
+    image_size: int = 64
+    """Square image side in pixels."""
+    area_half: float = 1.5
+    """Object centres lie in ``[-area_half, area_half]^2`` on the ground."""
+    scale_range: tuple[float, float] = (0.35, 0.7)
+    """World half-extent of an object's longest axis; CLEVR's small and large sizes are 0.35 and 0.7."""
+    min_gap: float = 0.05
+    """Minimum distance between the bounding discs (or balls) of two objects."""
+    ground_color: tuple[int, int, int] = (150, 150, 150)
+    """Flat RGB colour of the ground plane (not shaded)."""
+    light_dir: tuple[float, float, float] = (0.35, -0.55, 1.0)
+    """Direction towards the directional light, world frame (normalised when used)."""
+    ambient: float = 0.4
+    """Lambertian shading: colour * (ambient + diffuse * max(0, n . l))."""
+    diffuse: float = 0.6
+    far_depth: float = 12.0
+    """Depth is clipped at this camera z (the paper clips at 12); misses get it too."""
+    depth_noise_eta: float = 0.0
+    """Noisy-depth variant: Gaussian noise with sigma = eta * d^2 (the paper: eta = 0.001)."""
+    random_height: bool = False
+    """Variant: object centres at a random height in ``height_range``, over a lowered ground."""
+    height_range: tuple[float, float] = (-1.5, 1.5)
+    full_rotation: bool = False
+    """Variant: uniformly random 3-D rotation instead of yaw only."""
+    camera_jitter: float = 0.0
+    """Per-axis uniform jitter of the camera position, U(-j, j) (CLEVR uses 0.5)."""
+    camera_eye: tuple[float, float, float] = CLEVR_CAMERA_EYE
+
+    def __post_init__(self) -> None:
+        if self.num_objects <= 0:
+            raise ValueError(f"num_objects must be positive, got {self.num_objects}")
+        if self.image_size <= 0:
+            raise ValueError(f"image_size must be positive, got {self.image_size}")
+        lo, hi = self.scale_range
+        if not 0 < lo <= hi:
+            raise ValueError(f"scale_range must satisfy 0 < min <= max, got {self.scale_range}")
+        if self.area_half <= 0:
+            raise ValueError(f"area_half must be positive, got {self.area_half}")
+
+    @property
+    def ground_z(self) -> float:
+        """Height of the ground plane: 0, or below the lowest possible object when heights vary."""
+        if not self.random_height:
+            return 0.0
+        max_radius = self.scale_range[1] * max(s.bounding_radius() for s in clevr_shapes())
+        return float(self.height_range[0] - max_radius)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """Ground truth of one object. ``R`` rotates by ``yaw`` about ``axis`` (world z unless 6-DoF)."""
+
+    shape_id: int
+    category_id: int
+    color_id: int
+    scale: float
+    position: tuple[float, float, float]
+    yaw: float
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def rotation(self) -> np.ndarray:
+        cs = torch.tensor([math.cos(self.yaw), math.sin(self.yaw)], dtype=torch.float64)
+        return rotation_from_axis_cos_sin(cs, torch.tensor(self.axis, dtype=torch.float64)).numpy()
+
+    def world_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object's mesh in the world frame: ``x_world = s R x_obj + p``."""
+        v, f = shape_mesh(self.shape_id)
+        return (self.scale * v) @ self.rotation().T + np.asarray(self.position), f
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    objects: tuple[ObjectSpec, ...]
+    camera: Camera
+    ground_z: float
+    ground_color: tuple[int, int, int]
+    seed: tuple[int, ...] = field(default=())
+
+
+def clevr_camera(cfg: ClevrConfig, eye: tuple[float, float, float] | None = None) -> Camera:
+    """CLEVR's camera pose, with the focal length that makes the placement area fill the image.
+
+    The focal length is the largest for which all four corners of the area's square on the
+    ground project inside the image, with the principal point at the image centre.
+    """
+    eye_t = torch.tensor(cfg.camera_eye if eye is None else eye, dtype=torch.float64)
+    T_world_cam = look_at(eye_t, torch.zeros(3, dtype=torch.float64))
+    T_cam_world = torch.linalg.inv(T_world_cam)
+    a = cfg.area_half
+    corners = torch.tensor([[a, a, 0.0], [a, -a, 0.0], [-a, a, 0.0], [-a, -a, 0.0]], dtype=torch.float64)
+    x_cam = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    half = cfg.image_size / 2.0
+    ratios = (x_cam[:, :2] / x_cam[:, 2:]).abs().max()
+    f = float(half / ratios)
+    c = (cfg.image_size - 1) / 2.0
+    K = intrinsics_matrix(f, f, c, c, dtype=torch.float64)
+    return Camera(K.float(), T_world_cam.float(), cfg.image_size, cfg.image_size)
+
+
+def check_placement_feasible(cfg: ClevrConfig) -> None:
+    """Raise ``PlacementError`` when even the smallest objects cannot fit in the area.
+
+    Bound: discs of the smallest footprint radius ``r`` (plus half the gap) with centres in the
+    square cover at most ``DISC_PACKING_DENSITY`` of the square grown by ``r``.
+    """
+    r = cfg.scale_range[0] * min(s.footprint_radius() for s in clevr_shapes()) + cfg.min_gap / 2
+    side = 2 * cfg.area_half + 2 * r
+    capacity = DISC_PACKING_DENSITY * side * side / (math.pi * r * r)
+    if cfg.num_objects > capacity and not cfg.random_height:
+        raise PlacementError(
+            f"impossible placement: {cfg.num_objects} objects of radius >= {r:.2f} cannot fit "
+            f"without intersecting in [-{cfg.area_half}, {cfg.area_half}]^2 (at most ~{int(capacity)})"
+        )
+
+
+def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | None = None) -> SceneSpec:
+    """Sample one scene layout. All randomness comes from ``rng``."""
+    check_placement_feasible(cfg)
+    shapes = clevr_shapes()
+    if camera is None or cfg.camera_jitter > 0:
+        eye = np.asarray(cfg.camera_eye) + rng.uniform(-cfg.camera_jitter, cfg.camera_jitter, 3) * (cfg.camera_jitter > 0)
+        camera = clevr_camera(cfg, tuple(eye.tolist()))
+    three_d = cfg.random_height  # objects may then stack above each other: test balls, not discs
+    for _ in range(MAX_SCENE_ATTEMPTS):
+        objects: list[ObjectSpec] = []
+        centres: list[np.ndarray] = []
+        radii: list[float] = []
+        for _k in range(cfg.num_objects):
+            for _t in range(MAX_OBJECT_TRIES):
+                spec = shapes[int(rng.integers(len(shapes)))]
+                scale = float(rng.uniform(*cfg.scale_range))
+                xy = rng.uniform(-cfg.area_half, cfg.area_half, 2)
+                if cfg.full_rotation:
+                    axis, yaw = random_rotation_axis_angle(rng)
+                else:
+                    axis, yaw = [0.0, 0.0, 1.0], float(rng.uniform(-math.pi, math.pi))
+                if cfg.random_height:
+                    z = float(rng.uniform(*cfg.height_range))
+                elif cfg.full_rotation:
+                    probe = ObjectSpec(spec.shape_id, spec.category_id, 0, scale, (0.0, 0.0, 0.0), yaw, tuple(axis))
+                    z = float(-probe.world_mesh()[0][:, 2].min())
+                else:
+                    z = scale * spec.half_extents[2]
+                use_ball = three_d or cfg.full_rotation
+                radius = scale * (spec.bounding_radius() if use_ball else spec.footprint_radius())
+                centre = np.array([xy[0], xy[1], z]) if three_d else np.array([xy[0], xy[1], 0.0])
+                if all(np.linalg.norm(centre - c) >= radius + r + cfg.min_gap for c, r in zip(centres, radii)):
+                    color_id = int(rng.integers(len(COLOR_RGB)))
+                    objects.append(
+                        ObjectSpec(spec.shape_id, spec.category_id, color_id, scale, (float(xy[0]), float(xy[1]), z), yaw, tuple(axis))
+                    )
+                    centres.append(centre)
+                    radii.append(radius)
+                    break
+            else:
+                break  # this object did not fit: start the scene again
+        if len(objects) == cfg.num_objects:
+            return SceneSpec(tuple(objects), camera, cfg.ground_z, cfg.ground_color)
+    raise PlacementError(
+        f"impossible placement: could not place {cfg.num_objects} non-intersecting objects in "
+        f"[-{cfg.area_half}, {cfg.area_half}]^2 after {MAX_SCENE_ATTEMPTS} attempts"
+    )

@@ -1,0 +1,107 @@
+"""The packed dataset format: one ``.npy`` file per array, memory-mapped when read.
+
+Layout::
+
+    DIR/
+      meta.json          format, version, generator settings, seed, counts, and for each split
+                         and array its shape, dtype, byte size and SHA-256
+      train/rgb.npy      (N, H, W, 3) uint8    -- one file per entry of SCENE_ARRAYS
+      train/depth.npy    (N, H, W) float32
+      ...
+      val/...  test/...
+
+``meta.json`` is written last, and generation writes into a temporary folder that is renamed into
+place at the end, so an interrupted run never leaves a folder that loads. Opening checks every
+file's presence, header and size (cheap; catches truncation); ``verify=True`` also checks SHA-256.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from prismonet.data.errors import DatasetError
+from prismonet.data.scenes import SCENE_ARRAYS
+
+PACKED_FORMAT = "prismonet-packed"
+PACKED_VERSION = 1
+HASH_CHUNK = 1 << 24
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(HASH_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_split(split_dir: Path, arrays: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Write one split's arrays; returns their entries for ``meta.json``."""
+    split_dir.mkdir(parents=True, exist_ok=True)
+    entries = {}
+    for name in SCENE_ARRAYS:
+        path = split_dir / f"{name}.npy"
+        np.save(path, np.ascontiguousarray(arrays[name]))
+        entries[name] = {
+            "shape": list(arrays[name].shape),
+            "dtype": str(arrays[name].dtype),
+            "bytes": path.stat().st_size,
+            "sha256": _sha256(path),
+        }
+    return entries
+
+
+def write_meta(root: Path, meta: dict) -> None:
+    tmp = root / "meta.json.tmp"
+    tmp.write_text(json.dumps(meta, indent=2))
+    tmp.replace(root / "meta.json")
+
+
+def read_meta(root: Path) -> dict:
+    path = Path(root) / "meta.json"
+    if not path.is_file():
+        raise DatasetError(f"{root}: not a packed dataset (no meta.json)")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: corrupted JSON ({e})") from None
+    if meta.get("format") != PACKED_FORMAT:
+        raise DatasetError(f"{path}: format is {meta.get('format')!r}, expected {PACKED_FORMAT!r}")
+    if meta.get("version") != PACKED_VERSION:
+        raise DatasetError(f"{path}: version {meta.get('version')} is not supported (expected {PACKED_VERSION})")
+    return meta
+
+
+def open_split(root: Path, split: str, verify: bool = False) -> dict[str, np.ndarray]:
+    """Memory-map one split's arrays after checking them against ``meta.json``."""
+    root = Path(root)
+    meta = read_meta(root)
+    if split not in meta["splits"]:
+        raise DatasetError(f"{root}: no split {split!r}; it has {sorted(meta['splits'])}")
+    arrays = {}
+    for name, entry in meta["splits"][split].items():
+        path = root / split / f"{name}.npy"
+        if not path.is_file():
+            raise DatasetError(f"{path}: missing")
+        size = path.stat().st_size
+        if size != entry["bytes"]:
+            raise DatasetError(f"{path}: truncated or altered: {size} bytes, expected {entry['bytes']}")
+        if verify and _sha256(path) != entry["sha256"]:
+            raise DatasetError(f"{path}: corrupted: SHA-256 does not match meta.json")
+        try:
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise DatasetError(f"{path}: corrupted .npy file ({e})") from None
+        if list(arr.shape) != entry["shape"] or str(arr.dtype) != entry["dtype"]:
+            raise DatasetError(
+                f"{path}: header says {arr.dtype}{list(arr.shape)}, meta.json says {entry['dtype']}{entry['shape']}"
+            )
+        arrays[name] = arr
+    missing = set(SCENE_ARRAYS) - set(arrays)
+    if missing:
+        raise DatasetError(f"{root}/{split}: meta.json lists no {sorted(missing)}")
+    return arrays

@@ -1,0 +1,93 @@
+"""Ground-truth rendering of Clevr scenes with open3d's ``RaycastingScene``.
+
+This is deliberately independent of the project's differentiable SDF renderer, so that a bug in
+that renderer cannot cancel out when its output is evaluated against this ground truth.
+Outputs: RGB (Lambertian, no shadows, flat ground), depth as camera z clipped at ``far_depth``,
+and an instance-id mask (0 = ground, k = k-th object of the scene, 1-based).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from prismonet.data.clevr import COLOR_RGB, ClevrConfig, SceneSpec
+from prismonet.geometry.camera import camera_rays
+
+
+@dataclass
+class RenderedScene:
+    """One rendered scene. ``rgb``: (H, W, 3) uint8; ``depth``: (H, W) float32; ``instance``: (H, W) uint8."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    instance: np.ndarray
+
+
+def world_rays(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins and directions ``(H*W, 3)`` in the world; the camera-z of ``o + t d`` is ``t``."""
+    cam = spec.camera
+    d_cam = camera_rays(cam.K.double(), cam.height, cam.width).reshape(-1, 3).numpy()
+    T = cam.T_world_cam.double().numpy()
+    d = d_cam @ T[:3, :3].T
+    o = np.broadcast_to(T[:3, 3], d.shape)
+    return o, d
+
+
+def render_scene(
+    spec: SceneSpec,
+    cfg: ClevrConfig,
+    rng: np.random.Generator | None = None,
+    nthreads: int = 0,
+    rays: tuple[np.ndarray, np.ndarray] | None = None,
+) -> RenderedScene:
+    """Raycast a scene layout.
+
+    ``rng`` is needed only for the noisy-depth variant; ``rays`` (from ``world_rays``) may be
+    passed to reuse them across scenes that share a camera.
+    """
+    import open3d as o3d
+
+    H, W = spec.camera.height, spec.camera.width
+    o, d = world_rays(spec) if rays is None else rays
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for obj in spec.objects:
+        v, f = obj.world_mesh()
+        scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    rays = o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32))
+    hit = scene.cast_rays(rays, nthreads=nthreads)
+    t_obj = hit["t_hit"].numpy().astype(np.float64)
+    geom = hit["geometry_ids"].numpy().astype(np.int64)
+    normals = hit["primitive_normals"].numpy().astype(np.float64)
+    obj_hit = np.isfinite(t_obj)
+
+    # Ground plane z = ground_z, hit where the ray points down towards it.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = (spec.ground_z - o[:, 2]) / d[:, 2]
+    t_ground = np.where((d[:, 2] < 0) & (t_ground > 0), t_ground, np.inf)
+
+    fg = obj_hit & (t_obj < t_ground)
+    depth = np.where(fg, t_obj, t_ground)
+    depth = np.minimum(depth, cfg.far_depth)
+
+    # (in float32, open3d's id for "no hit" is 2^32 - 1; only read ids where fg)
+    instance = np.where(fg, geom + 1, 0).astype(np.uint8)
+
+    light = np.asarray(cfg.light_dir, dtype=np.float64)
+    light = light / np.linalg.norm(light)
+    shade = cfg.ambient + cfg.diffuse * np.clip(normals @ light, 0.0, None)
+    colors = np.asarray([COLOR_RGB[obj.color_id] for obj in spec.objects], dtype=np.float64)
+    rgb = np.broadcast_to(np.asarray(spec.ground_color, dtype=np.float64), (H * W, 3)).copy()
+    if fg.any():
+        rgb[fg] = colors[geom[fg]] * shade[fg, None]
+    rgb = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+
+    if cfg.depth_noise_eta > 0:
+        if rng is None:
+            raise ValueError("render_scene: the noisy-depth variant needs an rng")
+        depth = depth + rng.normal(size=depth.shape) * cfg.depth_noise_eta * depth**2
+        depth = np.clip(depth, 0.0, cfg.far_depth)
+
+    return RenderedScene(rgb.reshape(H, W, 3), depth.reshape(H, W).astype(np.float32), instance.reshape(H, W))

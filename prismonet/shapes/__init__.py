@@ -1,0 +1,1 @@
+"""Shapes: the Clevr shape set, and (later) the DeepSDF shape prior."""

@@ -1,0 +1,91 @@
+"""A shape prior: the decoder Phi, its training latents, and what they stand for.
+
+Stored as ``NAME.safetensors`` (weights and latents) plus ``NAME.json`` (decoder config, shape
+names, category and instance ids, training record). The Clevr prior ships inside the package:
+``load_prior()`` with no argument loads it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import torch
+
+from prismonet.shapes.decoder import SDFDecoder, SDFDecoderConfig
+
+SHIPPED_PRIOR = "clevr_prior"
+
+
+@dataclass
+class ShapePrior:
+    """Phi with the latent codes of its training shapes.
+
+    Attributes:
+        decoder: the SDF network (frozen once pre-trained).
+        latents: ``(N, D)`` one code per training shape.
+        shape_names: N names; ``category_ids`` / ``instance_ids``: N ints.
+        info: training record (epochs, time, quality), JSON-able.
+    """
+
+    decoder: SDFDecoder
+    latents: torch.Tensor
+    shape_names: list[str]
+    category_ids: list[int]
+    instance_ids: list[int]
+    info: dict = field(default_factory=dict)
+
+    def sdf(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        return self.decoder(z, x)
+
+    def frozen(self) -> "ShapePrior":
+        """Put the decoder in eval mode with gradients off for its weights (not its inputs)."""
+        self.decoder.eval()
+        for p in self.decoder.parameters():
+            p.requires_grad_(False)
+        return self
+
+    def save(self, path_stem: str | Path) -> tuple[Path, Path]:
+        """Write ``<stem>.safetensors`` and ``<stem>.json`` atomically."""
+        from prismonet.checkpoint import save_checkpoint
+
+        stem = Path(path_stem)
+        tensors = {f"decoder.{k}": v for k, v in self.decoder.state_dict().items()}
+        tensors["latents"] = self.latents.detach()
+        weights = stem.with_suffix(".safetensors")
+        config = stem.with_suffix(".json")
+        desc = {
+            "decoder": asdict(self.decoder.cfg),
+            "shape_names": self.shape_names,
+            "category_ids": self.category_ids,
+            "instance_ids": self.instance_ids,
+            "info": self.info,
+        }
+        save_checkpoint(weights, tensors, {"kind": "shape_prior"})
+        tmp = config.with_name(f".{config.name}.tmp")
+        tmp.write_text(json.dumps(desc, indent=2))
+        tmp.replace(config)
+        return weights, config
+
+
+def load_prior(path_stem: str | Path | None = None, frozen: bool = True) -> ShapePrior:
+    """Load a prior from ``<stem>.safetensors`` + ``<stem>.json``; default: the shipped Clevr prior."""
+    from prismonet.checkpoint import load_checkpoint
+
+    if path_stem is None:
+        stem = Path(str(resources.files("prismonet.assets").joinpath(SHIPPED_PRIOR)))
+    else:
+        stem = Path(path_stem)
+        if stem.suffix in (".safetensors", ".json"):
+            stem = stem.with_suffix("")
+    config = stem.with_suffix(".json")
+    if not config.is_file():
+        raise FileNotFoundError(f"{config}: no such shape-prior config")
+    desc = json.loads(config.read_text())
+    tensors, _ = load_checkpoint(stem.with_suffix(".safetensors"))
+    decoder = SDFDecoder(SDFDecoderConfig(**desc["decoder"]))
+    decoder.load_state_dict({k[len("decoder.") :]: v for k, v in tensors.items() if k.startswith("decoder.")})
+    prior = ShapePrior(decoder, tensors["latents"], desc["shape_names"], desc["category_ids"], desc["instance_ids"], desc.get("info", {}))
+    return prior.frozen() if frozen else prior

@@ -1,0 +1,1 @@
+"""Figures: contact sheets and colour maps (numpy + OpenCV, no plotting library needed)."""

@@ -1,0 +1,5 @@
+"""Real photos: loading, undistortion, cropping, colour normalisation, block-tower reader.
+
+Planned in the real-photos issue; the package exists now so that the layout and the single
+``pyproject.toml`` that installs ``prismonet``, ``realdata`` and ``calibration`` are in place.
+"""

@@ -1,0 +1,207 @@
+"""The CLEVR-style generator: exact depth, placement, determinism, variants, bad settings."""
+
+import numpy as np
+import pytest
+
+from prismonet.data.clevr import (
+    COLOR_RGB,
+    ClevrConfig,
+    ObjectSpec,
+    SceneSpec,
+    check_placement_feasible,
+    clevr_camera,
+    sample_scene,
+)
+from prismonet.data.errors import PlacementError
+from prismonet.data.generate import generate_clevr, render_range
+from prismonet.data.raycast_gt import render_scene, world_rays
+from prismonet.shapes.clevr_set import clevr_shapes, shape_mesh
+
+CFG = ClevrConfig()
+
+
+def test_clevr_colours_are_the_published_table():
+    assert COLOR_RGB == (
+        (87, 87, 87), (173, 35, 35), (42, 75, 215), (29, 105, 20),
+        (129, 74, 25), (129, 38, 192), (41, 208, 208), (255, 238, 51),
+    )
+
+
+def test_shape_set_has_nine_scalings_per_category():
+    shapes = clevr_shapes()
+    assert len(shapes) == 27
+    for cat in range(3):
+        ext = {s.half_extents for s in shapes if s.category_id == cat}
+        assert len(ext) == 9 and all(max(e) == 1.0 for e in ext)
+
+
+def _analytic_sphere(spec: SceneSpec, centre, radius):
+    o, d = world_rays(spec)
+    oc = o - np.asarray(centre)
+    a = (d * d).sum(1)
+    b = 2 * (oc * d).sum(1)
+    c = (oc * oc).sum(1) - radius**2
+    disc = b * b - 4 * a * c
+    hit = disc >= 0
+    t = np.where(hit, (-b - np.sqrt(np.where(hit, disc, 0))) / (2 * a), np.inf)
+    # closest approach of each ray to the centre, for the silhouette test
+    closest = np.linalg.norm(np.cross(oc, d), axis=1) / np.linalg.norm(d, axis=1)
+    t_ground = np.where(d[:, 2] < 0, (spec.ground_z - o[:, 2]) / d[:, 2], np.inf)
+    return t, hit, closest, t_ground
+
+
+def test_sphere_depth_matches_analytic_ray_sphere_intersection():
+    centre, r = (0.2, -0.3, 0.5), 0.5
+    cam = clevr_camera(CFG)
+    spec = SceneSpec((ObjectSpec(0, 0, 1, r, centre, 0.3),), cam, 0.0, CFG.ground_color)
+    out = render_scene(spec, CFG)
+    t, hit, closest, t_ground = _analytic_sphere(spec, centre, r)
+    depth, inst = out.depth.reshape(-1), out.instance.reshape(-1)
+    # The icosphere is inscribed in the sphere: its faces lie at most one sagitta inside,
+    # the gap between the sphere and its deepest face plane.
+    v, f = shape_mesh(0)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    plane_dist = np.abs((n / np.linalg.norm(n, axis=1, keepdims=True) * v[f[:, 0]]).sum(1))
+    sagitta = r * (1.0 - plane_dist.min())
+    both = hit & (inst == 1)
+    assert both.sum() > 50
+    err = depth[both] - t[both]
+    assert err.min() >= -1e-4  # never in front of the true sphere (float32 rounding only)
+    # along a ray at incidence angle theta a sagitta costs sagitta / cos(theta) of depth
+    inner = both & (closest < 0.85 * r)
+    cos_incidence = np.sqrt(1.0 - (closest[inner] / r) ** 2)
+    assert np.all(np.abs(depth[inner] - t[inner]) <= sagitta / cos_incidence + 1e-4)
+    # mask differs only at silhouette pixels: rays passing within a sagitta of the rim
+    wrong = hit != (inst == 1)
+    assert np.all(np.abs(closest[wrong] - r) <= sagitta + 1e-4)
+    # the ground is a plane at z = 0: exact, clipped at far_depth
+    ground = ~hit
+    assert np.allclose(depth[ground], np.minimum(t_ground[ground], CFG.far_depth), atol=1e-4)
+    # Lambertian: RGB is the CLEVR colour times one shade factor per pixel
+    rgb = out.rgb.reshape(-1, 3)[inner].astype(float)
+    shade = rgb / np.asarray(COLOR_RGB[1])
+    assert np.allclose(shade[:, 0], shade[:, 1], atol=0.03) and np.all(shade[:, 0] >= CFG.ambient - 0.01)
+
+
+def _pairwise_disjoint(spec: SceneSpec) -> bool:
+    """No object's surface samples lie inside another object (open3d occupancy, independent of
+    the generator's disc test)."""
+    import open3d as o3d
+    import trimesh
+
+    meshes = [obj.world_mesh() for obj in spec.objects]
+    for i, (vi, fi) in enumerate(meshes):
+        pts = trimesh.Trimesh(vi, fi).sample(3000, seed=i).astype(np.float32)
+        for j, (vj, fj) in enumerate(meshes):
+            if i == j:
+                continue
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(vj.astype(np.float32)), o3d.core.Tensor(fj.astype(np.uint32)))
+            if scene.compute_occupancy(o3d.core.Tensor(pts)).numpy().any():
+                return False
+    return True
+
+
+@pytest.mark.parametrize("n", [2, 5])
+def test_placement_in_bounds_on_ground_and_disjoint(n):
+    cfg = ClevrConfig(num_objects=n)
+    cam = clevr_camera(cfg)
+    for seed in range(15):
+        spec = sample_scene(np.random.default_rng(seed), cfg, cam)
+        assert len(spec.objects) == n
+        for obj in spec.objects:
+            assert abs(obj.position[0]) <= 1.5 and abs(obj.position[1]) <= 1.5
+            assert cfg.scale_range[0] <= obj.scale <= cfg.scale_range[1]
+            assert obj.world_mesh()[0][:, 2].min() == pytest.approx(0.0, abs=1e-9)  # resting on the ground
+        assert _pairwise_disjoint(spec)
+
+
+def test_disjoint_check_detects_overlap():
+    """The independent check used above can fail."""
+    cam = clevr_camera(CFG)
+    a = ObjectSpec(18, 2, 0, 0.5, (0.0, 0.0, 0.5), 0.0)
+    b = ObjectSpec(0, 0, 1, 0.5, (0.6, 0.0, 0.5), 0.0)
+    assert not _pairwise_disjoint(SceneSpec((a, b), cam, 0.0, CFG.ground_color))
+
+
+def test_full_rotation_objects_rest_on_ground_and_are_disjoint():
+    cfg = ClevrConfig(num_objects=4, full_rotation=True)
+    spec = sample_scene(np.random.default_rng(3), cfg, clevr_camera(cfg))
+    assert any(abs(o.axis[2]) < 0.99 for o in spec.objects)
+    for obj in spec.objects:
+        assert obj.world_mesh()[0][:, 2].min() == pytest.approx(0.0, abs=1e-9)
+    assert _pairwise_disjoint(spec)
+
+
+def test_random_height_lowers_ground_below_every_object():
+    cfg = ClevrConfig(num_objects=4, random_height=True)
+    assert cfg.ground_z < -1.5
+    for seed in range(5):
+        spec = sample_scene(np.random.default_rng(seed), cfg, clevr_camera(cfg))
+        zs = [o.position[2] for o in spec.objects]
+        assert all(-1.5 <= z <= 1.5 for z in zs)
+        assert all(o.world_mesh()[0][:, 2].min() > spec.ground_z for o in spec.objects)
+        assert _pairwise_disjoint(spec)
+
+
+def test_noisy_depth_has_sigma_eta_d_squared():
+    clean = render_range(CFG.to_dict(), 7, 0, 3)
+    noisy = render_range(ClevrConfig(depth_noise_eta=1e-3).to_dict(), 7, 0, 3)
+    assert np.array_equal(clean["rgb"], noisy["rgb"])
+    d = clean["depth"].astype(np.float64)
+    keep = d < CFG.far_depth - 1.0  # away from the clip
+    z = (noisy["depth"][keep] - d[keep]) / (1e-3 * d[keep] ** 2)
+    assert abs(z.mean()) < 0.05 and abs(z.std() - 1.0) < 0.05
+
+
+def test_generation_is_deterministic_given_seed():
+    a = render_range(CFG.to_dict(), 11, 5, 9)
+    b = render_range(CFG.to_dict(), 11, 5, 9)
+    c = render_range(CFG.to_dict(), 12, 5, 9)
+    for k in a:
+        assert np.array_equal(a[k], b[k])
+    assert not np.array_equal(a["rgb"], c["rgb"])
+    # scene i does not depend on where its range starts
+    d = render_range(CFG.to_dict(), 11, 7, 8)
+    assert np.array_equal(d["rgb"][0], a["rgb"][2])
+
+
+def test_generate_does_not_depend_on_workers(tmp_path):
+    from prismonet.data.dataset import SceneDataset
+
+    generate_clevr(tmp_path / "a", CFG, split=(6, 1, 1), seed=5, workers=1, progress=False, chunk=3)
+    generate_clevr(tmp_path / "b", CFG, split=(6, 1, 1), seed=5, workers=2, progress=False, chunk=3)
+    for split in ("train", "val", "test"):
+        a, b = SceneDataset(tmp_path / "a", split), SceneDataset(tmp_path / "b", split)
+        for k in a.arrays:
+            assert np.array_equal(a.arrays[k], b.arrays[k]), (split, k)
+
+
+def test_camera_jitter_moves_camera_within_bounds():
+    cfg = ClevrConfig(camera_jitter=0.5)
+    eyes = [sample_scene(np.random.default_rng(s), cfg).camera.center.numpy() for s in range(4)]
+    base = np.asarray(cfg.camera_eye)
+    assert all(np.abs(e - base).max() <= 0.5 + 1e-5 for e in eyes)
+    assert len({tuple(np.round(e, 4)) for e in eyes}) == 4
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"num_objects": 0}, "num_objects must be positive"),
+        ({"num_objects": -3}, "num_objects must be positive"),
+        ({"scale_range": (0.5, 0.2)}, "scale_range"),
+        ({"image_size": 0}, "image_size must be positive"),
+    ],
+)
+def test_bad_config_is_rejected(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ClevrConfig(**kwargs)
+
+
+def test_impossible_placement_is_rejected_quickly():
+    with pytest.raises(PlacementError, match="impossible placement: 40 objects"):
+        check_placement_feasible(ClevrConfig(num_objects=40))
+    # just under the upfront bound, rejection sampling gives up with a clear error too
+    with pytest.raises(PlacementError, match="impossible placement"):
+        sample_scene(np.random.default_rng(0), ClevrConfig(num_objects=25, scale_range=(0.35, 0.35)))

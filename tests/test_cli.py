@@ -1,0 +1,53 @@
+"""The ``prismonet`` command line: the demo, the data commands, one-line errors with exit code 2."""
+
+import cv2
+import pytest
+
+from prismonet.cli import main
+
+
+def test_demo_writes_dataset_and_contact_sheet(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--scenes", "3"]) == 0
+    sheet = cv2.imread(str(out / "contact_sheet.png"))
+    assert sheet is not None and sheet.shape[0] > 128 and sheet.shape[1] > 3 * 128
+    assert "contact sheet" in capsys.readouterr().out
+    assert main(["demo", "--out", str(out), "--scenes", "2"]) == 0  # re-runnable over its own output
+
+
+def test_data_commands(tmp_path, capsys):
+    ds = tmp_path / "ds"
+    assert main(["data", "clevr", "--objects", "2", "--out", str(ds), "--split", "3,1,2", "--workers", "1", "--quiet"]) == 0
+    assert "wrote 6 scenes" in capsys.readouterr().out
+    assert main(["data", "verify", str(ds)]) == 0
+    assert "test: 2 scenes ok" in capsys.readouterr().out
+    assert main(["data", "sheet", str(ds), "--out", str(tmp_path / "s.png"), "--split", "val"]) == 0
+    assert cv2.imread(str(tmp_path / "s.png")) is not None
+    assert main(["data", "to-folder", str(ds), str(tmp_path / "f")]) == 0
+    assert len(list((tmp_path / "f" / "rgb").glob("*.png"))) == 2
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["data", "clevr", "--objects", "0", "--out", "{tmp}/x"], "num_objects must be positive"),
+        (["data", "clevr", "--objects", "40", "--out", "{tmp}/x"], "impossible placement"),
+        (["data", "clevr", "--scenes", "0", "--out", "{tmp}/x"], "--scenes must be positive"),
+        (["data", "clevr", "--out", "{tmp}"], "output folder is not empty"),
+        (["data", "sheet", "{tmp}/nothing", "--out", "{tmp}/s.png"], "no such dataset folder"),
+        (["data", "verify", "{tmp}"], "not a packed dataset"),
+    ],
+)
+def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys, argv, message):
+    (tmp_path / "occupied").write_text("x")
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("prismonet: error: ") and message in err and "\n" not in err
+
+
+def test_bad_split_syntax_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["data", "clevr", "--out", str(tmp_path / "x"), "--split", "1,2"])
+    assert e.value.code == 2
+    assert "expected three comma-separated counts" in capsys.readouterr().err

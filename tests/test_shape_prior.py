@@ -1,0 +1,145 @@
+"""The auto-decoder, pre-training (overfit, resume), mesh extraction, metrics, the prior file."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from prismonet.checkpoint import load_checkpoint, save_checkpoint
+from prismonet.shapes.clevr_set import shape_mesh
+from prismonet.shapes.decoder import LatentSizeError, SDFDecoder, SDFDecoderConfig
+from prismonet.shapes.mesh import EmptyMeshError, extract_mesh
+from prismonet.shapes.metrics import chamfer_l1, grid_points, volumetric_iou
+from prismonet.shapes.pretrain import PretrainConfig, ShapeSet, pretrain
+from prismonet.shapes.prior import ShapePrior, load_prior
+from prismonet.shapes.sdf_samples import SamplingConfig
+
+
+class AnalyticSphere(torch.nn.Module):
+    """An exact SDF with the decoder's interface: radius = 0.5 + 0.1 * z[0]."""
+
+    cfg = SDFDecoderConfig(latent_dim=1)
+
+    def check_latent(self, z):
+        SDFDecoder.check_latent(self, z)
+
+    def forward(self, z, x):
+        return x.norm(dim=-1) - (0.5 + 0.1 * z[..., 0])
+
+
+def test_decoder_shapes_broadcast_and_latent_check():
+    phi = SDFDecoder(SDFDecoderConfig(latent_dim=8, width=32, depth=4, skip_layer=2))
+    out = phi(torch.zeros(3, 1, 8), torch.rand(3, 50, 3))
+    assert out.shape == (3, 50)
+    # per-point latents give the same values as a broadcast latent
+    z = torch.randn(3, 1, 8)
+    x = torch.rand(3, 50, 3)
+    assert torch.allclose(phi(z, x), phi(z.expand(3, 50, 8), x), atol=1e-6)
+    with pytest.raises(LatentSizeError, match="expected size 8, got 16"):
+        phi(torch.zeros(16), torch.zeros(10, 3))
+    with pytest.raises(ValueError, match="skip_layer"):
+        SDFDecoderConfig(depth=3, skip_layer=3)
+
+
+def test_marching_cubes_on_exact_sphere():
+    mesh = extract_mesh(AnalyticSphere(), torch.tensor([2.0]), resolution=48)  # r = 0.7
+    r = np.linalg.norm(mesh.vertices, axis=1)
+    spacing = 2 * 1.1 / 47
+    assert np.abs(r - 0.7).max() < spacing * 0.1  # linear interpolation of an exact SDF
+    assert mesh.volume > 0  # outward-facing winding
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * 0.7**3, rel=0.01)
+    T = torch.eye(4)
+    T[:3, :3] *= 2.0
+    T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    world = extract_mesh(AnalyticSphere(), torch.tensor([2.0]), resolution=48, T_world_obj=T)
+    assert np.allclose(world.bounds.mean(0), [1.0, 2.0, 3.0], atol=1e-3)
+    assert np.allclose(world.extents, 2 * 2 * 0.7, atol=0.01)
+
+
+def test_empty_sdf_has_no_mesh():
+    with pytest.raises(EmptyMeshError, match="no surface"):
+        extract_mesh(AnalyticSphere(), torch.tensor([-10.0]), resolution=16)  # radius < 0
+
+
+def test_chamfer_and_iou_hand_computed():
+    a = np.array([[0.0, 0, 0], [1, 0, 0]])
+    b = np.array([[0.0, 0, 0], [1, 0, 0], [3, 0, 0]])
+    # a->b: 0, 0 ; b->a: 0, 0, 2 -> 0.5 * (0 + 2/3)
+    assert chamfer_l1(a, b) == pytest.approx(1 / 3)
+    g = grid_points(10)
+    box_a = np.all(np.abs(g) < 0.5, axis=1)
+    box_b = np.all(np.abs(g - [0.5, 0, 0]) < 0.5, axis=1)
+    # cell centres at spacing 0.22: exact overlap fraction from the discrete counts
+    inter, union = (box_a & box_b).sum(), (box_a | box_b).sum()
+    assert volumetric_iou(box_a, box_b) == pytest.approx(inter / union)
+    assert 0 < volumetric_iou(box_a, box_b) < 1 and volumetric_iou(box_a, box_a) == 1.0
+    with pytest.raises(ValueError, match="shapes differ"):
+        volumetric_iou(box_a, box_b[:5])
+
+
+TINY = PretrainConfig(
+    decoder=SDFDecoderConfig(latent_dim=4, width=48, depth=3),
+    sampling=SamplingConfig(num_points=4096, uniform_ratio=0.4),
+    epochs=60,
+    points_per_shape=1024,
+    checkpoint_every=1000,
+)
+
+
+def _two_shapes():
+    return ShapeSet("two", (shape_mesh(0), shape_mesh(18)), ("sphere", "cube"), (0, 2), (0, 0))
+
+
+def test_overfit_two_shapes(tmp_path):
+    from prismonet.shapes.evaluate import evaluate_prior
+
+    prior = pretrain(TINY, tmp_path / "run", shape_set=_two_shapes(), progress=False)
+    report = evaluate_prior(prior, shape_set=_two_shapes(), resolution=32, iou_resolution=32, chamfer_points=5000,
+                            interpolation_pairs=1, progress=False)
+    assert report["min_iou"] > 0.85, report
+    assert report["max_chamfer_l1"] < 0.06, report
+    assert report["interpolation_nonempty"] == 1.0
+    assert (tmp_path / "run" / "prior.safetensors").is_file()
+
+
+def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
+    cfg = PretrainConfig(
+        decoder=SDFDecoderConfig(latent_dim=4, width=16, depth=2),
+        sampling=SamplingConfig(num_points=1024),
+        epochs=4, points_per_shape=512, checkpoint_every=1,
+    )
+    cache = tmp_path / "cache"
+    full = pretrain(cfg, tmp_path / "a", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+    pretrain(cfg, tmp_path / "b", shape_set=_two_shapes(), cache_dir=cache, progress=False, stop_after_epoch=1)
+    assert not (tmp_path / "b" / "prior.safetensors").exists()
+    resumed = pretrain(cfg, tmp_path / "b", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+    for (k, v), (k2, v2) in zip(full.decoder.state_dict().items(), resumed.decoder.state_dict().items()):
+        assert k == k2 and torch.equal(v, v2), k
+    assert torch.equal(full.latents, resumed.latents)
+    # a different config refuses to resume into the same folder
+    with pytest.raises(ValueError, match="another config"):
+        pretrain(PretrainConfig(**{**cfg.__dict__, "epochs": 5}), tmp_path / "b", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+
+
+def test_prior_save_load_round_trip(tmp_path):
+    phi = SDFDecoder(SDFDecoderConfig(latent_dim=8, width=16, depth=2))
+    prior = ShapePrior(phi, torch.randn(3, 8), ["a", "b", "c"], [0, 1, 2], [0, 0, 0], {"note": "x"})
+    weights, config = prior.save(tmp_path / "p")
+    assert weights.suffix == ".safetensors" and config.suffix == ".json"
+    back = load_prior(tmp_path / "p")
+    x = torch.rand(10, 3)
+    assert torch.equal(back.sdf(back.latents[1], x), phi(prior.latents[1], x))
+    assert back.shape_names == ["a", "b", "c"] and back.info == {"note": "x"}
+    assert not any(p.requires_grad for p in back.decoder.parameters())
+
+
+def test_checkpoint_is_atomic_and_rejects_damage(tmp_path):
+    path = tmp_path / "c.safetensors"
+    save_checkpoint(path, {"w": torch.ones(3)}, {"epoch": 1})
+    save_checkpoint(path, {"w": torch.zeros(3)}, {"epoch": 2})
+    tensors, meta = load_checkpoint(path)
+    assert meta == {"epoch": 2} and torch.equal(tensors["w"], torch.zeros(3))
+    assert [p.name for p in tmp_path.iterdir()] == ["c.safetensors"]  # no temporary left
+    path.write_bytes(path.read_bytes()[:20])
+    with pytest.raises(ValueError, match="not a readable safetensors checkpoint"):
+        load_checkpoint(path)

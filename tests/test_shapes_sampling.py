@@ -1,0 +1,96 @@
+"""SDF samples from meshes against analytic SDFs; normalisation; bad meshes."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from prismonet.shapes.clevr_set import UnknownCategoryError, category_id, shape_mesh
+from prismonet.shapes.normalize import BOX_HALF, MeshError, normalize_mesh
+from prismonet.shapes.sdf_samples import SamplingConfig, cached_sdf_samples, sample_sdf, signed_distance, winding_number
+
+
+def box_sdf(p, half):
+    q = np.abs(p) - np.asarray(half)
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+
+
+def test_box_sdf_is_exact():
+    v, f = shape_mesh(18)  # cube, half-extents (1, 1, 1)
+    p = np.random.default_rng(0).uniform(-1.1, 1.1, (4000, 3))
+    assert np.allclose(signed_distance(v, f, p), box_sdf(p, (1, 1, 1)), atol=1e-5)
+
+
+def test_sphere_sdf_within_tessellation_error():
+    v, f = shape_mesh(0)  # icosphere, radius 1
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    sagitta = 1.0 - np.abs((n / np.linalg.norm(n, axis=1, keepdims=True) * v[f[:, 0]]).sum(1)).min()
+    p = np.random.default_rng(1).uniform(-1.1, 1.1, (4000, 3))
+    exact = np.linalg.norm(p, axis=1) - 1.0
+    got = signed_distance(v, f, p)
+    assert np.abs(got - exact).max() <= sagitta + 1e-5
+    far = np.abs(exact) > sagitta
+    assert np.all(np.sign(got[far]) == np.sign(exact[far]))
+
+
+def test_winding_number_signs_survive_a_hole():
+    """A cube with one face (two triangles) removed: ray parity breaks, the winding number holds."""
+    v, f = shape_mesh(18)
+    top = np.where(v[f].mean(1)[:, 2] > 0.99)[0]
+    open_f = np.delete(f, top, axis=0)
+    assert not trimesh.Trimesh(v, open_f).is_watertight
+    p = np.random.default_rng(2).uniform(-0.8, 0.8, (2000, 3))
+    p[:1000] *= 1.8  # half of them mostly outside
+    w = winding_number(v, open_f, p)
+    exact = box_sdf(p, (1, 1, 1))
+    clear = (np.abs(exact) > 0.05) & (p[:, 2] < 0.9)  # away from the surface and the hole
+    assert np.all((w[clear] > 0.5) == (exact[clear] < 0))
+    sd = signed_distance(v, open_f, p)  # detects the hole and uses the winding number
+    assert np.all(np.sign(sd[clear]) == np.sign(exact[clear]))
+
+
+def test_normalisation_bounds():
+    v, f = shape_mesh(20)
+    moved = v * np.array([3.0, 3.0, 3.0]) + np.array([5.0, -2.0, 1.0])
+    nv, norm = normalize_mesh(moved, f)
+    assert np.allclose(np.abs(nv).max(0).max(), 1.0)
+    assert np.allclose((nv.max(0) + nv.min(0)) / 2, 0.0)
+    assert norm.scale == pytest.approx(1 / 3) and norm.center == pytest.approx((5.0, -2.0, 1.0))
+    pts, sdf = sample_sdf(moved, f, SamplingConfig(num_points=2000, uniform_ratio=0.5), np.random.default_rng(0))
+    assert pts.shape == (2000, 3) and sdf.shape == (2000,)
+    assert np.abs(pts).max() <= BOX_HALF + 1e-6
+    assert (sdf < 0).any() and (sdf > 0).any()
+
+
+def test_sample_mix_and_cache(tmp_path):
+    v, f = shape_mesh(9)
+    cfg = SamplingConfig(num_points=1000, uniform_ratio=0.3)
+    pts, sdf = cached_sdf_samples(v, f, cfg, 4, tmp_path)
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    again = cached_sdf_samples(v, f, cfg, 4, tmp_path)
+    assert np.array_equal(pts, again[0]) and np.array_equal(sdf, again[1])
+    # 700 near-surface points: most within 3 sigma of the surface
+    assert (np.abs(sdf[:700]) < 0.25).mean() > 0.95
+    # a damaged cache entry is recomputed, not trusted
+    next(tmp_path.glob("*.npz")).write_bytes(b"junk")
+    third = cached_sdf_samples(v, f, cfg, 4, tmp_path)
+    assert np.array_equal(third[1], sdf)
+
+
+@pytest.mark.parametrize(
+    "vertices, faces, message",
+    [
+        (np.zeros((0, 3)), np.zeros((0, 3), int), "empty mesh"),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, 1, np.nan]]), np.array([[0, 1, 2]]), "NaN or infinite"),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]), np.array([[0, 1, 2], [1, 3, 2]]), r"flat\) mesh: its extent along z"),
+        (np.eye(3), np.array([[0, 1, 5]]), "out of range"),
+    ],
+)
+def test_bad_meshes(vertices, faces, message):
+    with pytest.raises(MeshError, match=message):
+        sample_sdf(vertices, faces, SamplingConfig(num_points=10), np.random.default_rng(0))
+
+
+def test_unknown_category():
+    assert category_id("cube") == 2
+    with pytest.raises(UnknownCategoryError, match="unknown shape category 'cone'"):
+        category_id("cone")
