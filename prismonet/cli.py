@@ -117,6 +117,100 @@ def cmd_bench_data(args) -> int:
     return 0
 
 
+def cmd_shapes_pretrain(args) -> int:
+    import json
+
+    from prismonet.config import load_config
+    from prismonet.shapes.evaluate import evaluate_prior
+    from prismonet.shapes.pretrain import PretrainConfig, pretrain
+
+    cfg = load_config(PretrainConfig, args.config, args.set)
+    prior = pretrain(cfg, args.out, progress=not args.quiet)
+    print(f"prior: {Path(args.out) / 'prior.safetensors'} (+ prior.json), {prior.info['train_seconds']:.0f} s of training")
+    if not args.no_eval:
+        report = evaluate_prior(prior, resolution=args.resolution, progress=not args.quiet)
+        prior.info["quality"] = {k: v for k, v in report.items() if k != "per_shape"}
+        prior.save(Path(args.out) / "prior")
+        (Path(args.out) / "quality.json").write_text(json.dumps(report, indent=2))
+        print(_quality_line(report))
+    return 0
+
+
+def _quality_line(r: dict) -> str:
+    return (
+        f"Chamfer-L1 mean {r['mean_chamfer_l1']:.4f} (max {r['max_chamfer_l1']:.4f}) at marching-cubes resolution "
+        f"{r['resolution']}; IoU mean {r['mean_iou']:.4f} (min {r['min_iou']:.4f}) on a {r['iou_resolution']}^3 grid; "
+        f"non-empty interpolations {r['interpolation_nonempty']:.0%}"
+    )
+
+
+def cmd_shapes_eval(args) -> int:
+    import json
+
+    from prismonet.shapes.evaluate import evaluate_prior
+    from prismonet.shapes.prior import load_prior
+
+    report = evaluate_prior(load_prior(args.prior), resolution=args.resolution, progress=not args.quiet)
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2))
+    for row in report["per_shape"]:
+        print(f"  {row['shape']:<12} Chamfer-L1 {row['chamfer_l1']:.4f}  IoU {row['iou']:.4f}")
+    print(_quality_line(report))
+    return 0
+
+
+def cmd_shapes_mesh(args) -> int:
+    import torch
+
+    from prismonet.shapes.mesh import extract_mesh
+    from prismonet.shapes.prior import load_prior
+
+    prior = load_prior(args.prior)
+    if args.latent is not None:
+        z = torch.tensor([float(v) for v in args.latent.split(",")])
+    else:
+        if not 0 <= args.shape < len(prior.latents):
+            raise ValueError(f"--shape: expected 0..{len(prior.latents) - 1}, got {args.shape}")
+        z = prior.latents[args.shape]
+    mesh = extract_mesh(prior.decoder, z, args.resolution)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    mesh.export(args.out)
+    print(f"wrote {args.out} ({len(mesh.vertices)} vertices, {len(mesh.faces)} faces)")
+    return 0
+
+
+def cmd_bench_render(args) -> int:
+    from prismonet.bench.render import format_table, plot, run_bench
+
+    samples = [int(v) for v in args.samples.split(",")]
+    refine = [int(v) for v in args.refine.split(",")]
+    if args.batch <= 0 or args.repeats <= 0 or min(samples) < 2 or min(refine) < 0:
+        raise ValueError("--batch and --repeats must be positive, --samples at least 2, --refine non-negative")
+    rows, extra = run_bench(args.batch, args.objects, args.mlp_width, args.repeats, samples_list=samples, refine_list=refine)
+    table = format_table(rows, extra, args.batch, args.objects, args.mlp_width)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "render.md").write_text(table + "\n")
+    plot(rows, out / "render_time_vs_error.png")
+    print(table)
+    print(f"\nwrote {out / 'render.md'} and {out / 'render_time_vs_error.png'}")
+    if args.update:
+        _replace_section(Path(args.update), "render-bench", table)
+        print(f"updated {args.update}")
+    return 0
+
+
+def _replace_section(path: Path, name: str, body: str) -> None:
+    """Replace the text between ``<!-- name:start -->`` and ``<!-- name:end -->`` in a Markdown file."""
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    text = path.read_text()
+    if start not in text or end not in text:
+        raise ValueError(f"{path}: no {start} ... {end} section to update")
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    path.write_text(f"{head}{start}\n{body}\n{end}{tail}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -164,6 +258,30 @@ def build_parser() -> argparse.ArgumentParser:
     to_folder.add_argument("--count", type=int)
     to_folder.set_defaults(func=cmd_data_to_folder)
 
+    shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
+    ssub = shapes.add_subparsers(dest="shapes_command", required=True)
+    pre = ssub.add_parser("pretrain", help="pre-train the auto-decoder on the Clevr shape set (resumable)")
+    pre.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
+    pre.add_argument("--config", help="JSON file with PretrainConfig fields")
+    pre.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. decoder.width=128")
+    pre.add_argument("--resolution", type=int, default=64, help="marching-cubes resolution of the quality check")
+    pre.add_argument("--no-eval", action="store_true")
+    pre.add_argument("--quiet", action="store_true")
+    pre.set_defaults(func=cmd_shapes_pretrain)
+    ev = ssub.add_parser("eval", help="Chamfer-L1 and IoU of a prior on its training shapes")
+    ev.add_argument("prior", nargs="?", help="prior path stem (default: the shipped Clevr prior)")
+    ev.add_argument("--resolution", type=int, default=64)
+    ev.add_argument("--json", help="also write the full report here")
+    ev.add_argument("--quiet", action="store_true")
+    ev.set_defaults(func=cmd_shapes_eval)
+    me = ssub.add_parser("mesh", help="extract a mesh (PLY/OBJ/GLB by extension) for a training shape or latent")
+    me.add_argument("--prior", help="prior path stem (default: the shipped Clevr prior)")
+    me.add_argument("--shape", type=int, default=0, help="training shape index")
+    me.add_argument("--latent", help="comma-separated latent instead of --shape")
+    me.add_argument("--resolution", type=int, default=64)
+    me.add_argument("--out", required=True)
+    me.set_defaults(func=cmd_shapes_mesh)
+
     bench = sub.add_parser("bench", help="benchmarks (timings to record in BENCHMARKS.md)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     bdata = bsub.add_parser("data", help="dataset generation time per worker count")
@@ -172,17 +290,28 @@ def build_parser() -> argparse.ArgumentParser:
     bdata.add_argument("--workers", default="1,2", help="comma-separated worker counts; the first is the baseline")
     bdata.add_argument("--repeats", type=int, default=3)
     bdata.set_defaults(func=cmd_bench_data)
+    brender = bsub.add_parser("render", help="renderer run time against depth error, fast path vs reference")
+    brender.add_argument("--batch", type=int, default=8)
+    brender.add_argument("--objects", type=int, default=3)
+    brender.add_argument("--mlp-width", type=int, default=128)
+    brender.add_argument("--samples", default="6,12,24,48")
+    brender.add_argument("--refine", default="0,2,4", help="bisection steps to compare")
+    brender.add_argument("--repeats", type=int, default=5)
+    brender.add_argument("--out", default="benchmarks", help="folder for render.md and the PNG plot")
+    brender.add_argument("--update", metavar="BENCHMARKS.md", help="also replace the render-bench section of this file")
+    brender.set_defaults(func=cmd_bench_render)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
+    from prismonet.shapes.normalize import MeshError
 
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (DatasetError, OutputDirError, PlacementError, ValueError) as e:
+    except (DatasetError, OutputDirError, PlacementError, MeshError, ValueError, FileNotFoundError) as e:
         print(f"prismonet: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

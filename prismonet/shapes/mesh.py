@@ -46,12 +46,12 @@ def extract_mesh(decoder, latent: torch.Tensor, resolution: int = 64, T_world_ob
     spacing = 2 * BOX_HALF / (resolution - 1)
     verts, faces, _, _ = marching_cubes(grid, level=0.0, spacing=(spacing,) * 3)
     verts = verts - BOX_HALF
-    # marching_cubes orients faces towards increasing values (outward for an SDF) in
-    # index space [x, y, z], which is our frame: keep its winding.
+    # With gradient_direction="descent" (the default), faces wind outward for an SDF, which
+    # grows outward; the grid is indexed [x, y, z], our object frame, so the winding stands.
     if T_world_obj is not None:
         T = T_world_obj.detach().double().numpy()
         verts = verts @ T[:3, :3].T + T[:3, 3]
-    return trimesh.Trimesh(verts, faces[:, ::-1], process=False)
+    return trimesh.Trimesh(verts, faces, process=False)
 
 
 def to_open3d(mesh):

@@ -1,0 +1,55 @@
+"""Z-buffer composition of per-object renders over the background plane (the paper's F)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Composite:
+    """A composed scene.
+
+    Attributes:
+        image: ``(B, 3, H, W)``; depth: ``(B, 1, H, W)``; mask: ``(B, 1, H, W)`` float, 1 where an
+        object wins; instance: ``(B, H, W)`` int64, 0 = background, k = slot k-1 (1-based).
+    """
+
+    image: torch.Tensor
+    depth: torch.Tensor
+    mask: torch.Tensor
+    instance: torch.Tensor
+
+
+def zbuffer(obj_depth: torch.Tensor, obj_mask: torch.Tensor, upto: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Winning slot per pixel among slots ``< upto``: ``(winner (B, H, W) int64, any (B, H, W) bool)``."""
+    d = obj_depth[:, :upto].detach()
+    m = obj_mask[:, :upto]
+    if d.shape[1] == 0:
+        B, _, H, W = obj_depth.shape
+        return torch.zeros(B, H, W, dtype=torch.long), torch.zeros(B, H, W, dtype=torch.bool)
+    d = torch.where(m, d, torch.full_like(d, float("inf")))
+    winner = d.argmin(dim=1)
+    return winner, m.any(dim=1)
+
+
+def composite(
+    obj_depth: torch.Tensor, obj_mask: torch.Tensor, obj_color: torch.Tensor, bg_color: torch.Tensor,
+    bg_depth: torch.Tensor, upto: int | None = None,
+) -> Composite:
+    """Compose slots ``0..upto-1`` (all by default) over the background by z-buffering.
+
+    Args:
+        obj_depth: ``(B, K, H, W)``; obj_mask: ``(B, K, H, W)`` bool; obj_color: ``(B, K, 3, H, W)``.
+        bg_color: ``(B, 3)`` the regressed ground colour; bg_depth: ``(B, 1, H, W)`` known plane depth.
+    """
+    winner, hit = zbuffer(obj_depth, obj_mask, upto)
+    w = winner[:, None]
+    depth = torch.gather(obj_depth, 1, w)  # (B, 1, H, W)
+    color = torch.gather(obj_color, 1, w[:, :, None].expand(-1, -1, 3, -1, -1))[:, 0]  # (B, 3, H, W)
+    hit4 = hit[:, None]
+    image = torch.where(hit4, color, bg_color[:, :, None, None].expand_as(color))
+    depth = torch.where(hit4, depth, bg_depth)
+    instance = torch.where(hit, winner + 1, torch.zeros_like(winner))
+    return Composite(image, depth, hit4.to(image.dtype), instance)
