@@ -91,6 +91,12 @@ def find_crossings(
     return Crossings(ray, t_a, t_b, evals)
 
 
+def linear_root(t_a: torch.Tensor, t_b: torch.Tensor, f_a: torch.Tensor, f_b: torch.Tensor) -> torch.Tensor:
+    """Zero of the line through ``(t_a, f_a)`` and ``(t_b, f_b)``, kept inside ``[t_a, t_b]``."""
+    w = (f_a / (f_a - f_b).clamp_min(EPS_DENOM)).clamp(0.0, 1.0)
+    return t_a + w * (t_b - t_a)
+
+
 def interpolate_surface(
     sdf_fn: SdfFn, z: torch.Tensor, o: torch.Tensor, d: torch.Tensor, t_a: torch.Tensor, t_b: torch.Tensor
 ) -> torch.Tensor:
@@ -100,6 +106,4 @@ def interpolate_surface(
     """
     x = torch.stack([o + t_a[:, None] * d, o + t_b[:, None] * d], dim=1)  # (n, 2, 3)
     f = sdf_fn(z, x)
-    f_a, f_b = f[:, 0], f[:, 1]
-    w = (f_a / (f_a - f_b).clamp_min(EPS_DENOM)).clamp(0.0, 1.0)
-    return t_a + w * (t_b - t_a)
+    return linear_root(t_a, t_b, f[:, 0], f[:, 1])

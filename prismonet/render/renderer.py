@@ -22,7 +22,7 @@ import torch
 from prismonet.geometry.pose import T_world_obj_from_extrinsics
 from prismonet.geometry.transforms import invert_similarity
 from prismonet.render.composite import Composite, composite, zbuffer
-from prismonet.render.raymarch import EPS_DENOM, SdfFn, find_crossings, interpolate_surface
+from prismonet.render.raymarch import SdfFn, find_crossings, interpolate_surface, linear_root
 from prismonet.render.rays import object_rays
 
 ColorFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -142,19 +142,39 @@ def _active(params: SceneParams, B: int, K: int) -> torch.Tensor:
     return torch.ones(B * K, dtype=torch.bool) if params.active is None else params.active.reshape(-1)
 
 
+def _cast(params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor, height: int, width: int,
+          settings: RenderSettings, cull: bool):
+    """Checks, object frames (with gradients) and the rays of every active slot (detached)."""
+    B, Kslots = params.check()
+    _check_camera(K, T_world_cam, B, params.z_sh.dtype)
+    T_obj_cam, T_cam_obj = _frames(params, T_world_cam)
+    Kn = K[:, None].expand(B, Kslots, 3, 3).reshape(B * Kslots, 3, 3)
+    rays = object_rays(T_obj_cam.detach(), T_cam_obj.detach(), Kn, _active(params, B, Kslots), height, width,
+                       cull=cull, interval=settings.interval)
+    return B, Kslots, T_obj_cam, rays, params.z_sh.reshape(B * Kslots, -1)
+
+
+def _object_render(params: SceneParams, color_fn: ColorFn | None, slot, pix, t_star, x_obj, shape, far_depth, stats) -> ObjectRender:
+    """Scatter the hits into dense per-object depth, mask and (optionally) colour images."""
+    B, Kslots, H, W = shape
+    flat = slot * (H * W) + pix
+    n = B * Kslots * H * W
+    depth = torch.full((n,), far_depth, dtype=t_star.dtype).index_put((flat,), t_star)
+    mask = torch.zeros(n, dtype=torch.bool).index_put((flat,), torch.ones_like(flat, dtype=torch.bool))
+    color = None
+    if color_fn is not None:
+        rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[slot], x_obj)
+        color = torch.zeros(n, 3, dtype=rgb.dtype).index_put((flat,), rgb)
+        color = color.reshape(B, Kslots, H, W, 3).permute(0, 1, 4, 2, 3)
+    return ObjectRender(depth.reshape(B, Kslots, H, W), mask.reshape(B, Kslots, H, W), color, slot, pix, x_obj, stats)
+
+
 def render_objects(
     sdf_fn: SdfFn, color_fn: ColorFn | None, params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor,
     height: int, width: int, settings: RenderSettings = RenderSettings(),
 ) -> ObjectRender:
     """Raycast every active slot (fast path). Colours per object if ``color_fn`` is given."""
-    B, Kslots = params.check()
-    _check_camera(K, T_world_cam, B, params.z_sh.dtype)
-    HW = height * width
-    T_obj_cam, T_cam_obj = _frames(params, T_world_cam)
-    Kn = K[:, None].expand(B, Kslots, 3, 3).reshape(B * Kslots, 3, 3)
-    rays = object_rays(T_obj_cam.detach(), T_cam_obj.detach(), Kn, _active(params, B, Kslots), height, width,
-                       cull=True, interval=settings.interval)
-    z_sh = params.z_sh.reshape(B * Kslots, -1)
+    B, Kslots, T_obj_cam, rays, z_sh = _cast(params, K, T_world_cam, height, width, settings, cull=True)
     A = T_obj_cam[:, :3, :3]
     o_all = T_obj_cam[:, :3, 3]
     # the search (detached)
@@ -165,21 +185,12 @@ def render_objects(
     # the differentiable part: two SDF evaluations per hit ray
     slot = rays.obj[cr.ray]
     pix = rays.pix[cr.ray]
-    d_cam = rays.d_cam[cr.ray]
     o_h = o_all[slot]
-    d_h = torch.einsum("rij,rj->ri", A[slot], d_cam)
+    d_h = torch.einsum("rij,rj->ri", A[slot], rays.d_cam[cr.ray])
     t_star = interpolate_surface(sdf_fn, z_sh[slot], o_h, d_h, cr.t_a, cr.t_b)
     x_obj = o_h + t_star[:, None] * d_h
-    flat = slot * HW + pix
-    depth = torch.full((B * Kslots * HW,), settings.far_depth, dtype=t_star.dtype).index_put((flat,), t_star)
-    mask = torch.zeros(B * Kslots * HW, dtype=torch.bool).index_put((flat,), torch.ones_like(flat, dtype=torch.bool))
-    color = None
-    if color_fn is not None:
-        rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[slot], x_obj)
-        color = torch.zeros(B * Kslots * HW, 3, dtype=rgb.dtype).index_put((flat,), rgb)
-        color = color.reshape(B, Kslots, height, width, 3).permute(0, 1, 4, 2, 3)
     stats = {"rays": len(rays), "hits": int(slot.numel()), "sdf_evals": cr.sdf_evals + 2 * int(slot.numel())}
-    return ObjectRender(depth.reshape(B, Kslots, height, width), mask.reshape(B, Kslots, height, width), color, slot, pix, x_obj, stats)
+    return _object_render(params, color_fn, slot, pix, t_star, x_obj, (B, Kslots, height, width), settings.far_depth, stats)
 
 
 def shade_winners(color_fn: ColorFn, params: SceneParams, obj: ObjectRender, bg_color: torch.Tensor, winner, hit) -> torch.Tensor:
@@ -232,15 +243,8 @@ def render_scene_reference(
     Same sample positions and interpolation as the fast path (no refinement), so the two agree
     up to float rounding, in values and gradients.
     """
-    B, Kslots = params.check()
-    _check_camera(K, T_world_cam, B, params.z_sh.dtype)
     H, W = bg_depth.shape[-2:]
-    HW = H * W
-    T_obj_cam, T_cam_obj = _frames(params, T_world_cam)
-    Kn = K[:, None].expand(B, Kslots, 3, 3).reshape(B * Kslots, 3, 3)
-    rays = object_rays(T_obj_cam.detach(), T_cam_obj.detach(), Kn, _active(params, B, Kslots), H, W,
-                       cull=False, interval=settings.interval)
-    z_sh = params.z_sh.reshape(B * Kslots, -1)
+    B, Kslots, T_obj_cam, rays, z_sh = _cast(params, K, T_world_cam, H, W, settings, cull=False)
     A = T_obj_cam[:, :3, :3]
     o = T_obj_cam[rays.obj, :3, 3]
     d = torch.einsum("rij,rj->ri", A[rays.obj], rays.d_cam)
@@ -253,18 +257,8 @@ def render_scene_reference(
     j = change.to(torch.uint8).argmax(1)
     rows = torch.nonzero(has, as_tuple=False).flatten()
     jr = j[rows]
-    f_a, f_b = f[rows, jr], f[rows, jr + 1]
-    t_a, t_b = t[rows, jr], t[rows, jr + 1]
-    w = (f_a / (f_a - f_b).clamp_min(EPS_DENOM)).clamp(0.0, 1.0)
-    t_star = t_a + w * (t_b - t_a)
-    slot, pix = rays.obj[rows], rays.pix[rows]
+    t_star = linear_root(t[rows, jr], t[rows, jr + 1], f[rows, jr], f[rows, jr + 1])
     x_obj = o[rows] + t_star[:, None] * d[rows]
-    flat = slot * HW + pix
-    depth = torch.full((B * Kslots * HW,), settings.far_depth, dtype=t_star.dtype).index_put((flat,), t_star)
-    mask = torch.zeros(B * Kslots * HW, dtype=torch.bool).index_put((flat,), torch.ones_like(flat, dtype=torch.bool))
-    rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[slot], x_obj)
-    color = torch.zeros(B * Kslots * HW, 3, dtype=rgb.dtype).index_put((flat,), rgb)
-    color = color.reshape(B, Kslots, H, W, 3).permute(0, 1, 4, 2, 3)
-    obj = ObjectRender(depth.reshape(B, Kslots, H, W), mask.reshape(B, Kslots, H, W), color, slot, pix, x_obj,
-                       {"rays": len(rays), "hits": int(rows.numel()), "sdf_evals": len(rays) * settings.samples})
+    stats = {"rays": len(rays), "hits": int(rows.numel()), "sdf_evals": len(rays) * settings.samples}
+    obj = _object_render(params, color_fn, rays.obj[rows], rays.pix[rows], t_star, x_obj, (B, Kslots, H, W), settings.far_depth, stats)
     return composite(obj.depth, obj.mask, obj.color, bg_color, bg_depth), obj
