@@ -12,8 +12,10 @@ if ! "$PY" -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)
   exit 1
 fi
 
-# open3d fails to import without libusb-1.0.
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1\.0\.so\.0'; then
+# open3d fails to import without libusb-1.0. (Capture first: `ldconfig -p | grep -q` under
+# pipefail fails whenever grep quits early and ldconfig gets SIGPIPE.)
+libs=$(ldconfig -p 2>/dev/null || /sbin/ldconfig -p 2>/dev/null || true)
+if [[ "$libs" != *libusb-1.0.so.0* ]]; then
   echo "setup: installing libusb-1.0-0 (needed by open3d)"
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
