@@ -211,6 +211,21 @@ def _replace_section(path: Path, name: str, body: str) -> None:
     path.write_text(f"{head}{start}\n{body}\n{end}{tail}")
 
 
+def cmd_train(args) -> int:
+    import json
+
+    from prismonet.config import load_config
+    from prismonet.model.trainer import TrainConfig, train
+
+    cfg = load_config(TrainConfig, args.config, args.set)
+    out = Path(args.out)
+    summary = train(cfg, out, progress=not args.quiet)
+    if summary.get("world_size", 1) == 1 or int(__import__("os").environ.get("RANK", "0")) == 0:
+        print(json.dumps(summary))
+        print(f"run folder: {out}  (model.safetensors + model.json, checkpoint.safetensors, tb/, images/, log.jsonl)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -257,6 +272,13 @@ def build_parser() -> argparse.ArgumentParser:
     to_folder.add_argument("--split", default="test")
     to_folder.add_argument("--count", type=int)
     to_folder.set_defaults(func=cmd_data_to_folder)
+
+    tr = sub.add_parser("train", help="train the scene model from RGB-D (resumable; works under torchrun)")
+    tr.add_argument("config", help="JSON file of TrainConfig fields (e.g. configs/clevr3.json)")
+    tr.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
+    tr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. loss.blur=false")
+    tr.add_argument("--quiet", action="store_true")
+    tr.set_defaults(func=cmd_train)
 
     shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
     ssub = shapes.add_subparsers(dest="shapes_command", required=True)
@@ -305,13 +327,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
+    from prismonet.config import ConfigError
+    from prismonet.model.io import CheckpointError
+    from prismonet.model.trainer import TrainingError
     from prismonet.shapes.normalize import MeshError
 
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (DatasetError, OutputDirError, PlacementError, MeshError, ValueError, FileNotFoundError) as e:
+    except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError,
+            ValueError, FileNotFoundError) as e:
         print(f"prismonet: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

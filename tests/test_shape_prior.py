@@ -35,7 +35,7 @@ def test_decoder_shapes_broadcast_and_latent_check():
     z = torch.randn(3, 1, 8)
     x = torch.rand(3, 50, 3)
     assert torch.allclose(phi(z, x), phi(z.expand(3, 50, 8), x), atol=1e-6)
-    with pytest.raises(LatentSizeError, match="expected size 8, got 16"):
+    with pytest.raises(LatentSizeError, match="latent: expected size 8, got 16"):
         phi(torch.zeros(16), torch.zeros(10, 3))
     with pytest.raises(ValueError, match="skip_layer"):
         SDFDecoderConfig(depth=3, skip_layer=3)

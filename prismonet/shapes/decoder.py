@@ -54,16 +54,11 @@ class _JoinLinear(nn.Module):
         return y if self.h is None else y + self.h(h)
 
 
-class SDFDecoder(nn.Module):
-    """Phi: ``(z (..., D), x (..., 3)) -> sdf (...,)``; leading dims of ``z`` broadcast against ``x``.
+class LatentMLP(nn.Module):
+    """An MLP of ``(z (..., D), x (..., 3))`` with ReLU hidden layers; leading dims of ``z``
+    broadcast against ``x``. Shared by Phi (shape) and Psi (texture)."""
 
-    Example:
-        >>> phi = SDFDecoder(SDFDecoderConfig(latent_dim=8))
-        >>> phi(torch.zeros(2, 1, 8), torch.zeros(2, 100, 3)).shape
-        torch.Size([2, 100])
-    """
-
-    def __init__(self, cfg: SDFDecoderConfig = SDFDecoderConfig()) -> None:
+    def __init__(self, cfg: SDFDecoderConfig, out_dim: int) -> None:
         super().__init__()
         self.cfg = cfg
         layers = []
@@ -75,13 +70,13 @@ class SDFDecoder(nn.Module):
             else:
                 layers.append(nn.Linear(cfg.width, cfg.width))
         self.layers = nn.ModuleList(layers)
-        self.out = nn.Linear(cfg.width, 1)
+        self.out = nn.Linear(cfg.width, out_dim)
 
     def check_latent(self, z: torch.Tensor) -> None:
         if z.shape[-1] != self.cfg.latent_dim:
-            raise LatentSizeError(f"shape latent: expected size {self.cfg.latent_dim}, got {z.shape[-1]} (shape {tuple(z.shape)})")
+            raise LatentSizeError(f"latent: expected size {self.cfg.latent_dim}, got {z.shape[-1]} (shape {tuple(z.shape)})")
 
-    def forward(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    def features(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         self.check_latent(z)
         if x.shape[-1] != 3:
             raise ValueError(f"points: expected shape (..., 3), got {tuple(x.shape)}")
@@ -89,5 +84,21 @@ class SDFDecoder(nn.Module):
         for layer in self.layers:
             h = layer(h, z, x) if isinstance(layer, _JoinLinear) else layer(h)
             h = torch.relu(h)
-        y = self.out(h)[..., 0]
+        return self.out(h)
+
+
+class SDFDecoder(LatentMLP):
+    """Phi: ``(z (..., D), x (..., 3)) -> sdf (...,)``; leading dims of ``z`` broadcast against ``x``.
+
+    Example:
+        >>> phi = SDFDecoder(SDFDecoderConfig(latent_dim=8))
+        >>> phi(torch.zeros(2, 1, 8), torch.zeros(2, 100, 3)).shape
+        torch.Size([2, 100])
+    """
+
+    def __init__(self, cfg: SDFDecoderConfig = SDFDecoderConfig()) -> None:
+        super().__init__(cfg, 1)
+
+    def forward(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        y = self.features(z, x)[..., 0]
         return torch.tanh(y) if self.cfg.tanh_output else y

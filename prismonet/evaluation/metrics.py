@@ -1,0 +1,150 @@
+"""The paper's measures, as pure functions on numpy arrays (and kornia for SSIM / PSNR).
+
+Instance measures follow the paper: an object counts as found when the IoU of its predicted and
+ground-truth visible masks exceeds the threshold, and only objects with at least
+``MIN_VISIBLE_PIXELS`` visible pixels count. Our reading where the paper is silent:
+- the 25-pixel rule applies to predicted objects too (a sliver of a hidden slot is no detection);
+- precision, recall and F1 are computed per scene and averaged over scenes ("AP", "AR", "F1");
+- a scene with no predictions has precision 1 if it has no ground-truth objects, else 0.
+With disjoint masks and thresholds >= 0.5, an object can match at most one prediction, so the
+matching is unique without an assignment step.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+MIN_VISIBLE_PIXELS = 25
+IOU_THRESHOLDS = tuple(np.round(np.arange(0.5, 0.951, 0.05), 2).tolist())
+
+
+def instance_masks(instance: np.ndarray, min_pixels: int = MIN_VISIBLE_PIXELS) -> tuple[np.ndarray, np.ndarray]:
+    """Ids ``(n,)`` and boolean masks ``(n, H, W)`` of the instances (id > 0) with enough pixels."""
+    ids, counts = np.unique(instance[instance > 0], return_counts=True)
+    keep = ids[counts >= min_pixels]
+    return keep, instance[None] == keep[:, None, None]
+
+
+def iou_matrix(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """IoU ``(P, G)`` between boolean masks ``(P, H, W)`` and ``(G, H, W)``."""
+    p = pred.reshape(len(pred), -1).astype(np.float64)
+    g = gt.reshape(len(gt), -1).astype(np.float64)
+    inter = p @ g.T
+    union = p.sum(1)[:, None] + g.sum(1)[None] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1), 0.0)
+
+
+def scene_detection(pred_instance: np.ndarray, gt_instance: np.ndarray, threshold: float) -> dict:
+    """Precision, recall, F1, counts and matched (pred id, gt id) pairs for one scene at one IoU threshold."""
+    pid, pm = instance_masks(pred_instance)
+    gid, gm = instance_masks(gt_instance)
+    if threshold < 0.5:
+        raise ValueError(f"IoU threshold must be at least 0.5 (for a unique matching), got {threshold}")
+    iou = iou_matrix(pm, gm) if len(pid) and len(gid) else np.zeros((len(pid), len(gid)))
+    # disjoint masks: IoU > 0.5 with two partners is impossible, so the matching is unique
+    pairs = [(int(pid[p]), int(gid[g])) for p, g in zip(*np.nonzero(iou > threshold))]
+    tp = len(pairs)
+    precision = tp / len(pid) if len(pid) else float(len(gid) == 0)
+    recall = tp / len(gid) if len(gid) else 1.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "n_pred": len(pid), "n_gt": len(gid), "pairs": pairs}
+
+
+def detection_metrics(pred_instances: np.ndarray, gt_instances: np.ndarray) -> dict:
+    """AP0.5, AR0.5, F1_0.5, mAP over 0.5:0.95, allObj, over scenes ``(N, H, W)``."""
+    per_t = {t: [scene_detection(p, g, t) for p, g in zip(pred_instances, gt_instances)] for t in IOU_THRESHOLDS}
+    s05 = per_t[0.5]
+    return {
+        "AP0.5": float(np.mean([s["precision"] for s in s05])),
+        "AR0.5": float(np.mean([s["recall"] for s in s05])),
+        "F1_0.5": float(np.mean([s["f1"] for s in s05])),
+        "mAP": float(np.mean([np.mean([s["precision"] for s in per_t[t]]) for t in IOU_THRESHOLDS])),
+        "allObj": float(np.mean([s["recall"] == 1.0 for s in s05])),
+    }
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """RMSE, PSNR (data range 1) and SSIM (11x11 Gaussian window, sigma 1.5) of images ``(N, 3, H, W)`` in [0, 1].
+
+    Means over scenes of the per-scene values.
+    """
+    import kornia
+    import torch
+
+    p = torch.as_tensor(pred, dtype=torch.float64)
+    g = torch.as_tensor(gt, dtype=torch.float64)
+    mse = ((p - g) ** 2).flatten(1).mean(1)
+    psnr = 10 * torch.log10(1.0 / mse.clamp_min(1e-12))
+    ssim = kornia.metrics.ssim(p, g, 11).flatten(1).mean(1)
+    return {"img_RMSE": float(mse.sqrt().mean()), "PSNR": float(psnr.mean()), "SSIM": float(ssim.mean())}
+
+
+def depth_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """Depth RMSE, AbsRD and SqRD (Eigen et al.) over pixels with known ground truth (> 0), per scene then averaged."""
+    rmse, absrd, sqrd = [], [], []
+    for p, g in zip(np.asarray(pred, np.float64), np.asarray(gt, np.float64)):
+        v = g > 0
+        d = p[v] - g[v]
+        rmse.append(math.sqrt(float(np.mean(d**2))))
+        absrd.append(float(np.mean(np.abs(d) / g[v])))
+        sqrd.append(float(np.mean(d**2 / g[v])))
+    return {"depth_RMSE": float(np.mean(rmse)), "AbsRD": float(np.mean(absrd)), "SqRD": float(np.mean(sqrd))}
+
+
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Adjusted Rand index of two labelings of the same items (Hubert & Arabie)."""
+    a = np.asarray(a).ravel()
+    b = np.asarray(b).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"adjusted_rand_index: labelings differ in size, {a.size} vs {b.size}")
+    n = a.size
+    if n < 2:
+        return 1.0
+    _, ai = np.unique(a, return_inverse=True)
+    _, bi = np.unique(b, return_inverse=True)
+    table = np.zeros((ai.max() + 1, bi.max() + 1), dtype=np.int64)
+    np.add.at(table, (ai, bi), 1)
+    comb = lambda x: x * (x - 1) / 2.0
+    sum_ij = comb(table).sum()
+    sum_a = comb(table.sum(1)).sum()
+    sum_b = comb(table.sum(0)).sum()
+    expected = sum_a * sum_b / comb(n)
+    max_index = (sum_a + sum_b) / 2.0
+    if max_index == expected:
+        return 1.0
+    return float((sum_ij - expected) / (max_index - expected))
+
+
+def ari_metrics(pred_instances: np.ndarray, gt_instances: np.ndarray) -> dict:
+    """ARI over all pixels and ARI-FG over ground-truth foreground pixels, averaged over scenes."""
+    ari, fg = [], []
+    for p, g in zip(pred_instances, gt_instances):
+        ari.append(adjusted_rand_index(p, g))
+        m = g > 0
+        if m.any():
+            fg.append(adjusted_rand_index(p[m], g[m]))
+    return {"ARI": float(np.mean(ari)), "ARI-FG": float(np.mean(fg)) if fg else float("nan")}
+
+
+def angle_error(pred: float, gt: float, period: float | None) -> float:
+    """Absolute angle difference in degrees, modulo ``period`` (radians; ``None`` = 2 pi, 0 = any angle)."""
+    if period == 0:
+        return 0.0
+    period = 2 * math.pi if period is None else period
+    d = (pred - gt) % period
+    return math.degrees(min(d, period - d))
+
+
+def symmetry_period(shape_id: int) -> float | None:
+    """Rotational symmetry about the vertical axis of a Clevr shape: 0 (any angle), pi/2, pi."""
+    from prismonet.shapes.clevr_set import clevr_shapes
+
+    if shape_id < 0:
+        return None
+    s = clevr_shapes()[shape_id]
+    hx, hy, _ = s.half_extents
+    if hx == hy:
+        return 0.0 if s.category in ("sphere", "cylinder") else math.pi / 2
+    return math.pi

@@ -1,0 +1,55 @@
+"""Model configuration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+INPUT_MODES = ("I", "I+dI", "I+M", "I+dI+M")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of the scene model (the paper's Clevr settings where it states them)."""
+
+    num_slots: int = 3
+    """N, recurrent encoding steps (objects per scene); reset it to evaluate on other counts."""
+    image_size: int = 64
+    inputs: str = "I+dI+M"
+    """Encoder input ablation: the image I, the difference image dI, the occlusion mask M."""
+    tex_dim: int = 7
+    """D_tex (the paper: 7 for Clevr)."""
+    channels: tuple[int, ...] = (32, 32, 64, 64)
+    """Conv blocks (3x3, stride 1, ReLU, 2x2 max-pool) of the object encoder."""
+    fc: tuple[int, ...] = (256, 256)
+    bg_channels: tuple[int, ...] = (16, 16, 32, 32)
+    texture_width: int = 64
+    texture_depth: int = 4
+    scale_range: tuple[float, float] = (0.25, 0.9)
+    """[s_min, s_max]: the sigmoid squashes the regressed scale into it."""
+    position_offset: tuple[float, float, float] = (0.0, 0.0, 0.4)
+    """Position = offset + scale * raw output: starts objects mid-scene, just above the ground."""
+    position_scale: tuple[float, float, float] = (1.5, 1.5, 0.5)
+    full_rotation: bool = False
+    """Regress an extra rotation axis (the paper's full-6-DoF variant)."""
+    detach_partials: bool = True
+    """Feed the partial compositions to the encoder without gradients (cheaper, more stable)."""
+    prior: str = "shipped"
+    """Shape prior: ``"shipped"`` (the packaged Clevr prior) or a path stem."""
+    render_samples: int = 12
+    render_refine_steps: int = 0
+    far_depth: float = 12.0
+
+    def __post_init__(self) -> None:
+        if self.inputs not in INPUT_MODES:
+            raise ValueError(f"inputs: expected one of {INPUT_MODES}, got {self.inputs!r}")
+        if self.num_slots <= 0 or self.image_size <= 0 or self.tex_dim <= 0:
+            raise ValueError(f"num_slots, image_size and tex_dim must be positive, got {self.num_slots}, {self.image_size}, {self.tex_dim}")
+        lo, hi = self.scale_range
+        if not 0 < lo < hi:
+            raise ValueError(f"scale_range must satisfy 0 < min < max, got {self.scale_range}")
+        if self.image_size % (2 ** len(self.channels)) != 0:
+            raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.channels)} (one pool per block)")
+
+    @property
+    def in_channels(self) -> int:
+        return {"I": 3, "I+dI": 6, "I+M": 4, "I+dI+M": 7}[self.inputs]

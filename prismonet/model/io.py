@@ -1,0 +1,73 @@
+"""Saving and loading trained scene models: ``model.safetensors`` + ``model.json``."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from prismonet.model.config import ModelConfig
+
+
+class CheckpointError(ValueError):
+    """A model checkpoint that is missing, damaged, or made for another configuration."""
+
+
+def prior_fingerprint(prior) -> str:
+    """A short hash of the prior's weights: a model is only valid with the prior it was trained on."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for k, v in sorted(prior.decoder.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().float().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
+    from prismonet.checkpoint import save_checkpoint
+
+    stem = Path(stem)
+    save_checkpoint(stem.with_suffix(".safetensors"), dict(model.state_dict()), {"kind": "prismonet_model"})
+    desc = {"model": asdict(model.cfg), "prior_fingerprint": prior_fingerprint(model.prior), **info}
+    tmp = stem.with_name(f".{stem.name}.json.tmp")
+    tmp.write_text(json.dumps(desc, indent=2))
+    tmp.replace(stem.with_suffix(".json"))
+    return stem.with_suffix(".safetensors"), stem.with_suffix(".json")
+
+
+def load_model(path: str | Path, num_slots: int | None = None):
+    """Load ``(model, info)`` from a run folder, a ``.safetensors``/``.json`` path, or a stem."""
+    from prismonet.checkpoint import load_checkpoint
+    from prismonet.config import _build
+    from prismonet.model.prismonet import PriSMONet
+
+    p = Path(path)
+    stem = p / "model" if p.is_dir() else (p.with_suffix("") if p.suffix in (".safetensors", ".json") else p)
+    config = stem.with_suffix(".json")
+    if not config.is_file():
+        raise CheckpointError(f"{config}: no such model config (expected model.json beside model.safetensors)")
+    try:
+        info = json.loads(config.read_text())
+        cfg = _build(ModelConfig, info["model"], "model.")
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{config}: corrupted or incompatible model config ({e})") from None
+    if num_slots is not None:
+        cfg = ModelConfig(**{**asdict(cfg), "num_slots": num_slots})
+    model = PriSMONet(cfg)
+    if info.get("prior_fingerprint") != prior_fingerprint(model.prior):
+        raise CheckpointError(f"{config}: trained with another shape prior (fingerprint {info.get('prior_fingerprint')})")
+    try:
+        tensors, _ = load_checkpoint(stem.with_suffix(".safetensors"))
+    except (FileNotFoundError, ValueError) as e:
+        raise CheckpointError(str(e)) from None
+    missing, unexpected = model.load_state_dict(tensors, strict=False)
+    if missing or unexpected:
+        raise CheckpointError(f"{stem}.safetensors: does not fit this configuration (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    for name, t in model.state_dict().items():
+        if t.shape != tensors[name].shape:
+            raise CheckpointError(f"{stem}.safetensors: {name} has shape {tuple(tensors[name].shape)}, expected {tuple(t.shape)}")
+    model.eval()
+    return model, info

@@ -1,0 +1,141 @@
+"""The scene model: image in, object-wise 3-D scene representation and its renders out.
+
+Objects are encoded one after another by the same encoder g_o, which sees the image, the
+difference to the composition of the objects found so far, and their occlusion mask; each new
+object is rendered right away so that the next step can see it (Fig. 2-3 of the paper).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from prismonet.geometry.transforms import invert_similarity, transform_points
+from prismonet.model.config import ModelConfig
+from prismonet.model.encoder import ConvEncoder
+from prismonet.model.texture import TextureField
+from prismonet.render import RenderSettings, SceneParams, composite, render_objects
+from prismonet.render.background import plane_depth
+from prismonet.render.composite import Composite
+from prismonet.shapes.prior import ShapePrior, load_prior
+
+
+@dataclass
+class SceneLatents:
+    """The inferred representation of B scenes with N slots (``params.active`` unused here)."""
+
+    params: SceneParams
+    bg_color: torch.Tensor  # (B, 3)
+
+
+@dataclass
+class ModelOutput:
+    """Latents, the composed renders, and per-object renders (``obj_*``: ``(B, N, ...)``)."""
+
+    latents: SceneLatents
+    composite: Composite
+    obj_depth: torch.Tensor
+    obj_mask: torch.Tensor
+    obj_color: torch.Tensor
+    bg_depth: torch.Tensor
+
+
+class PriSMONet(nn.Module):
+    """The PriSMONet scene model. The shape prior is frozen and kept outside the module tree
+    (it is not in ``state_dict`` and is not trained)."""
+
+    def __init__(self, cfg: ModelConfig = ModelConfig(), prior: ShapePrior | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        if prior is None:
+            prior = load_prior(None if cfg.prior == "shipped" else cfg.prior)
+        self.__dict__["prior"] = prior.frozen()
+        self.sh_dim = prior.decoder.cfg.latent_dim
+        self.out_dim = self.sh_dim + cfg.tex_dim + 3 + 2 + 1 + (3 if cfg.full_rotation else 0)
+        self.encoder = ConvEncoder(cfg.in_channels, cfg.channels, cfg.fc, cfg.image_size, self.out_dim)
+        self.bg_encoder = ConvEncoder(3, cfg.bg_channels, (64,), cfg.image_size, 3)
+        self.texture = TextureField(cfg.tex_dim, cfg.texture_width, cfg.texture_depth)
+        self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
+        self.register_buffer("pos_scale", torch.tensor(cfg.position_scale), persistent=False)
+
+    # -- pieces -------------------------------------------------------------------------
+    def sdf_fn(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """Phi for the renderer: ``z (R, D)``, ``x (R, S, 3)`` -> ``(R, S)``."""
+        return self.prior.decoder(z[:, None, :], x)
+
+    def color_fn(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        return self.texture(z, x)
+
+    def render_settings(self) -> RenderSettings:
+        return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps, far_depth=self.cfg.far_depth)
+
+    def decode_latent(self, raw: torch.Tensor) -> SceneParams:
+        """Split a raw encoder output ``(B, out_dim)`` into one slot's ``SceneParams`` (K = 1)."""
+        d_sh, d_tex = self.sh_dim, self.cfg.tex_dim
+        z_sh, z_tex, pos, cs, s = torch.split(raw[:, : d_sh + d_tex + 6], [d_sh, d_tex, 3, 2, 1], dim=1)
+        lo, hi = self.cfg.scale_range
+        axis = raw[:, d_sh + d_tex + 6 :][:, None] if self.cfg.full_rotation else None
+        # (cos, sin) raw outputs start near 0: bias towards (1, 0) so the normalisation is well-posed
+        cs = cs + torch.tensor([1.0, 0.0], dtype=cs.dtype)
+        if axis is not None:
+            axis = axis + torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype)
+        return SceneParams(
+            z_sh=z_sh[:, None], z_tex=z_tex[:, None],
+            position=(self.pos_offset + self.pos_scale * pos)[:, None],
+            cos_sin=cs[:, None], scale=(lo + (hi - lo) * torch.sigmoid(s))[:, None, 0], axis=axis,
+        )
+
+    def encoder_input(self, image: torch.Tensor, partial_image: torch.Tensor, partial_mask: torch.Tensor) -> torch.Tensor:
+        parts = {"I": [image], "I+dI": [image, image - partial_image], "I+M": [image, partial_mask],
+                 "I+dI+M": [image, image - partial_image, partial_mask]}[self.cfg.inputs]
+        return torch.cat(parts, dim=1)
+
+    def sdf_world(self, params: SceneParams, x_world: torch.Tensor) -> torch.Tensor:
+        """Signed distance in world units of each slot's shape at world points.
+
+        ``x_world``: ``(B, K, P, 3)`` -> ``(B, K, P)``; ``s * Phi(z_sh, T_obj_world x)``.
+        """
+        B, K = params.scale.shape
+        T_obj_world = invert_similarity(params.T_world_obj())  # (B, K, 4, 4)
+        x_obj = transform_points(T_obj_world.reshape(B * K, 4, 4), x_world.reshape(B * K, -1, 3))
+        f = self.prior.decoder(params.z_sh.reshape(B * K, 1, -1), x_obj)
+        return (f * params.scale.reshape(B * K, 1)).reshape(B, K, -1)
+
+    # -- the model ----------------------------------------------------------------------
+    def forward(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor,
+                num_slots: int | None = None) -> ModelOutput:
+        """Decompose images ``(B, 3, H, W)`` (cameras ``K (B, 3, 3)``, ``T_world_cam (B, 4, 4)``,
+        ground heights ``(B,)``) into ``num_slots`` objects (default ``cfg.num_slots``)."""
+        B, C, H, W = image.shape
+        if C != 3 or (H, W) != (self.cfg.image_size, self.cfg.image_size):
+            raise ValueError(f"image: expected shape (B, 3, {self.cfg.image_size}, {self.cfg.image_size}), got {tuple(image.shape)}")
+        N = self.cfg.num_slots if num_slots is None else num_slots
+        if N <= 0:
+            raise ValueError(f"num_slots must be positive, got {N}")
+        bg_color = torch.sigmoid(self.bg_encoder(image))
+        bg_depth = plane_depth(K, T_world_cam, H, W, ground_z, self.cfg.far_depth)
+        cur_image = bg_color[:, :, None, None].expand(B, 3, H, W)
+        cur_depth = torch.full((B, 1, H, W), float("inf"), dtype=image.dtype)
+        cur_mask = torch.zeros(B, 1, H, W, dtype=image.dtype)
+        slots, depths, masks, colors = [], [], [], []
+        settings = self.render_settings()
+        for _ in range(N):
+            pi, pm = (cur_image.detach(), cur_mask.detach()) if self.cfg.detach_partials else (cur_image, cur_mask)
+            params = self.decode_latent(self.encoder(self.encoder_input(image, pi, pm)))
+            obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
+            d, m, c = obj.depth, obj.mask, obj.color[:, 0]  # (B, 1, H, W) x2, (B, 3, H, W)
+            win = m & (d < cur_depth)
+            cur_image = torch.where(win, c, cur_image)
+            cur_depth = torch.where(win, d, cur_depth)
+            cur_mask = torch.maximum(cur_mask, m.to(image.dtype))
+            slots.append(params)
+            depths.append(d[:, 0])
+            masks.append(m[:, 0])
+            colors.append(c)
+        cat = lambda name: None if getattr(slots[0], name) is None else torch.cat([getattr(p, name) for p in slots], 1)
+        params = SceneParams(cat("z_sh"), cat("z_tex"), cat("position"), cat("cos_sin"), cat("scale"), cat("axis"))
+        obj_depth, obj_mask, obj_color = torch.stack(depths, 1), torch.stack(masks, 1), torch.stack(colors, 1)
+        comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
+        return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth)

@@ -1,0 +1,222 @@
+"""Training the scene model from RGB-D alone (``prismonet train CONFIG``).
+
+- Batches: step ``t`` draws its scene indices and its input noise from generators seeded with
+  ``(seed, t)``, so a resumed run sees exactly what an uninterrupted one would.
+- Checkpoints (weights, Adam moments, step, counters) are written atomically to
+  ``RUN/checkpoint.safetensors`` every ``checkpoint_every`` steps and on Ctrl-C; rerunning the
+  same command resumes.
+- Logs: TensorBoard scalars in ``RUN/tb``, the same scalars in ``RUN/log.jsonl``, and image grids
+  in ``RUN/images``.
+- A non-finite loss skips its step; more than ``max_nonfinite`` of them stop training with an error.
+- Under ``torchrun`` (``WORLD_SIZE`` > 1) it runs DistributedDataParallel on the gloo backend:
+  each rank takes a share of the global batch, rank 0 writes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from prismonet.model.config import ModelConfig
+from prismonet.model.losses import LossConfig, compute_losses
+
+
+class TrainingError(RuntimeError):
+    """Training cannot go on (too many non-finite losses, a mismatched resume)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run."""
+
+    data: str = "data/clevr3"
+    """A packed dataset (``prismonet data clevr``) or a folder dataset."""
+    split: str = "train"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    steps: int = 20_000
+    batch_size: int = 8
+    """Global batch size (split across DDP ranks)."""
+    lr: float = 1e-4
+    """Adam learning rate (the paper: 1e-4)."""
+    input_noise: float = 0.02
+    """Std of the Gaussian noise added to input images (the paper adds noise; its level is not given)."""
+    depth_noise_eta: float = 0.0
+    """Noisy-depth ablation: noise with sigma = eta d^2 on the target depth (the paper: 0.001)."""
+    depth_clip: float = 12.0
+    grad_clip: float = 10.0
+    """Global gradient-norm clip (0 = off)."""
+    seed: int = 0
+    threads: int = 2
+    log_every: int = 25
+    image_every: int = 500
+    checkpoint_every: int = 200
+    max_nonfinite: int = 20
+
+    def __post_init__(self) -> None:
+        if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0:
+            raise ValueError(f"steps, batch_size and lr must be positive, got {self.steps}, {self.batch_size}, {self.lr}")
+        for name in ("log_every", "image_every", "checkpoint_every", "threads"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.input_noise < 0 or self.depth_noise_eta < 0:
+            raise ValueError("input_noise and depth_noise_eta must be non-negative")
+
+
+RESUME_IGNORED = ("threads", "log_every", "image_every", "checkpoint_every", "steps", "max_nonfinite")
+"""Fields that may change between a run and its resumption (e.g. to train for longer)."""
+
+
+def _resume_key(d: dict) -> dict:
+    return {k: v for k, v in d.items() if k not in RESUME_IGNORED}
+
+
+def _dist() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not torch.distributed.is_initialized():
+        torch.distributed.init_process_group("gloo")
+    return (torch.distributed.get_rank() if world > 1 else 0), world
+
+
+def check_dataset_fits(ds, cfg: TrainConfig) -> None:
+    H, W = ds.arrays["rgb"].shape[1:3]
+    if (H, W) != (cfg.model.image_size, cfg.model.image_size):
+        raise ValueError(f"{cfg.data}: images are {W}x{H} but the model expects {cfg.model.image_size}x{cfg.model.image_size}")
+    if len(ds) < 1:
+        raise ValueError(f"{cfg.data}: split {cfg.split!r} is empty")
+
+
+def image_grid(batch, out, path: Path, n: int = 4) -> None:
+    """PNG: per scene, input | reconstruction | target depth | rendered depth | instances."""
+    import cv2
+    import numpy as np
+
+    from prismonet.viz.contact_sheet import colorize_depth, colorize_instances
+
+    rows = []
+    for i in range(min(n, len(batch))):
+        to8 = lambda t: (t.detach().clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        d_gt, d = batch.depth[i, 0].numpy(), out.composite.depth[i, 0].detach().numpy()
+        lo, hi = float(d_gt[d_gt > 0].min()), float(d_gt.max())
+        panels = [to8(batch.rgb[i]), to8(out.composite.image[i]), colorize_depth(d_gt, lo, hi), colorize_depth(d, lo, hi),
+                  colorize_instances(out.composite.instance[i].numpy())]
+        rows.append(np.concatenate([cv2.resize(p, (128, 128), interpolation=cv2.INTER_NEAREST) for p in panels], 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate(rows, 0)[..., ::-1])
+
+
+def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_after: int | None = None) -> dict:
+    """Train (or resume) a run; returns a summary. ``stop_after``: stop after that step (as a kill would)."""
+    from tqdm import tqdm
+
+    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import save_model
+    from prismonet.model.prismonet import PriSMONet
+
+    rank, world = _dist()
+    if cfg.batch_size % world:
+        raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the number of processes {world}")
+    torch.set_num_threads(max(1, cfg.threads // world))
+    torch.manual_seed(cfg.seed)
+    run = Path(run_dir)
+    if rank == 0:
+        run.mkdir(parents=True, exist_ok=True)
+    ds = SceneDataset(cfg.data, cfg.split)
+    check_dataset_fits(ds, cfg)
+    model = PriSMONet(cfg.model)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    cfg_json = json.loads(json.dumps(asdict(cfg)))
+
+    ckpt = run / "checkpoint.safetensors"
+    start, nonfinite, elapsed = 0, 0, 0.0
+    if ckpt.is_file():
+        tensors, meta = load_checkpoint(ckpt)
+        if _resume_key(meta.get("config", {})) != _resume_key(cfg_json):
+            raise TrainingError(f"{ckpt}: was written with another config; use a new run folder or the same config")
+        model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+        load_optimizer(opt, tensors, meta["optimizer"])
+        start, nonfinite, elapsed = meta["step"], meta["nonfinite"], meta["elapsed_s"]
+    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+
+    def save(step: int) -> None:
+        if rank != 0:
+            return
+        tensors, desc = optimizer_tensors(opt)
+        tensors.update({f"model.{k}": v for k, v in model.state_dict().items()})
+        save_checkpoint(ckpt, tensors, {"config": cfg_json, "step": step, "nonfinite": nonfinite, "elapsed_s": elapsed, "optimizer": desc})
+
+    writer = None
+    if rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(run / "tb"), purge_step=start)
+    log = open(run / "log.jsonl", "a") if rank == 0 else None
+    per_rank = cfg.batch_size // world
+    bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", disable=not progress or rank != 0)
+    step = start
+    last = {}
+    try:
+        while step < cfg.steps:
+            t0 = time.perf_counter()
+            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+            idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
+            batch = ds.batch(idx.tolist())
+            noise = torch.randn(batch.rgb.shape, generator=g) * cfg.input_noise  # same g: rank-local slice below
+            target_depth = batch.depth.clamp(max=cfg.depth_clip)
+            if cfg.depth_noise_eta > 0:
+                target_depth = (target_depth + torch.randn(target_depth.shape, generator=g) * cfg.depth_noise_eta * target_depth**2).clamp(0, cfg.depth_clip)
+            net.train()
+            out = net(batch.rgb + noise, batch.K, batch.T_world_cam, batch.ground_z)
+            terms = compute_losses(model, out, batch, cfg.loss, step, target_depth)
+            opt.zero_grad(set_to_none=True)
+            if not math.isfinite(float(terms.total)):
+                nonfinite += 1
+                if nonfinite > cfg.max_nonfinite:
+                    raise TrainingError(f"stopping at step {step}: {nonfinite} non-finite losses (max_nonfinite={cfg.max_nonfinite})")
+            else:
+                terms.total.backward()
+                if cfg.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+                opt.step()
+            step += 1
+            elapsed += time.perf_counter() - t0
+            last = terms.scalars()
+            if rank == 0:
+                bar.update(1)
+                if step % cfg.log_every == 0 or step == cfg.steps:
+                    for k, v in last.items():
+                        writer.add_scalar(f"loss/{k}", v, step)
+                    writer.add_scalar("train/nonfinite", nonfinite, step)
+                    log.write(json.dumps({"step": step, "time_s": round(elapsed, 2), "nonfinite": nonfinite, **last}) + "\n")
+                    log.flush()
+                    bar.set_postfix(loss=f"{last['total']:.4f}")
+                if step % cfg.image_every == 0 or step == cfg.steps:
+                    image_grid(batch, out, run / "images" / f"step_{step:07d}.png")
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                save(step)
+            if stop_after is not None and step >= stop_after:
+                break
+    except KeyboardInterrupt:
+        save(step)  # nothing lost: rerun the same command to resume from here
+        raise
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+        if log is not None:
+            log.close()
+    summary = {"steps": step, "elapsed_s": round(elapsed, 1), "nonfinite": nonfinite, "last": last, "world_size": world}
+    if rank == 0 and step >= cfg.steps:
+        K0 = ds.batch([0]).K[0].tolist()
+        save_model(model, run / "model", {"train": cfg_json, "summary": summary, "camera_K": K0})
+    if world > 1:
+        torch.distributed.barrier()
+    return summary

@@ -1,0 +1,108 @@
+"""The paper's measures on hand-computed cases, and against scikit-learn and scikit-image."""
+
+import math
+
+import numpy as np
+import pytest
+
+from prismonet.evaluation.metrics import (
+    adjusted_rand_index,
+    angle_error,
+    ari_metrics,
+    depth_metrics,
+    detection_metrics,
+    image_metrics,
+    iou_matrix,
+    scene_detection,
+    symmetry_period,
+)
+
+
+def scene(boxes, size=32):
+    inst = np.zeros((size, size), np.int64)
+    for k, (y0, y1, x0, x1) in enumerate(boxes, 1):
+        inst[y0:y1, x0:x1] = k
+    return inst
+
+
+def test_perfect_prediction_gives_ap_ar_one():
+    gt = np.stack([scene([(0, 10, 0, 10), (15, 25, 15, 25)]), scene([(2, 12, 2, 12)])])
+    pred = gt.copy()
+    pred[pred == 1] = 7  # ids need not agree
+    m = detection_metrics(pred, gt)
+    assert m == {"AP0.5": 1.0, "AR0.5": 1.0, "F1_0.5": 1.0, "mAP": 1.0, "allObj": 1.0}
+
+
+def test_known_iou_cases():
+    gt = scene([(0, 10, 0, 10)])  # 100 px
+    shifted = scene([(0, 10, 4, 14)])  # overlap 60, union 140 -> IoU 3/7 < 0.5
+    assert iou_matrix(shifted[None] == 1, gt[None] == 1)[0, 0] == pytest.approx(60 / 140)
+    s = scene_detection(shifted, gt, 0.5)
+    assert (s["tp"], s["precision"], s["recall"], s["f1"]) == (0, 0.0, 0.0, 0.0)
+    closer = scene([(0, 10, 2, 12)])  # overlap 80, union 120 -> IoU 2/3
+    s = scene_detection(closer, gt, 0.5)
+    assert s["tp"] == 1 and s["pairs"] == [(1, 1)]
+    assert scene_detection(closer, gt, 0.65)["tp"] == 1 and scene_detection(closer, gt, 0.7)["tp"] == 0
+    # mAP over 0.5..0.95: found at 0.5, 0.55, 0.6, 0.65 -> 4 of 10 thresholds
+    assert detection_metrics(closer[None], gt[None])["mAP"] == pytest.approx(0.4)
+
+
+def test_one_of_two_found_and_small_objects_ignored():
+    gt = scene([(0, 10, 0, 10), (20, 30, 20, 30), (0, 4, 28, 32)])  # third: 16 px < 25, ignored
+    pred = scene([(0, 10, 0, 10), (20, 30, 0, 10)])  # finds object 1, plus a false detection
+    s = scene_detection(pred, gt, 0.5)
+    assert (s["n_gt"], s["n_pred"], s["tp"]) == (2, 2, 1)
+    m = detection_metrics(pred[None], gt[None])
+    assert m["AP0.5"] == 0.5 and m["AR0.5"] == 0.5 and m["F1_0.5"] == 0.5 and m["allObj"] == 0.0
+    with pytest.raises(ValueError, match="at least 0.5"):
+        scene_detection(pred, gt, 0.3)
+
+
+def test_ari_matches_scikit_learn():
+    from sklearn.metrics import adjusted_rand_score
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        a = rng.integers(0, 4, 300)
+        b = np.where(rng.random(300) < 0.7, a, rng.integers(0, 5, 300))
+        assert adjusted_rand_index(a, b) == pytest.approx(adjusted_rand_score(a, b), abs=1e-12)
+    assert adjusted_rand_index([0, 0, 1, 1], [5, 5, 3, 3]) == 1.0
+    gt = scene([(0, 10, 0, 10)])
+    pred = gt.copy()
+    pred[0, 0] = 0
+    m = ari_metrics(pred[None], gt[None])
+    assert m["ARI"] == pytest.approx(adjusted_rand_score(gt.ravel(), pred.ravel()))
+    assert m["ARI-FG"] == pytest.approx(adjusted_rand_score(gt[gt > 0], pred[gt > 0]))
+
+
+def test_psnr_and_ssim_agree_with_scikit_image():
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    rng = np.random.default_rng(1)
+    gt = rng.random((2, 3, 32, 32))
+    pred = np.clip(gt + rng.normal(0, 0.05, gt.shape), 0, 1)
+    m = image_metrics(pred, gt)
+    psnr = np.mean([peak_signal_noise_ratio(g, p, data_range=1.0) for p, g in zip(pred, gt)])
+    ssim = np.mean([structural_similarity(g, p, channel_axis=0, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                          use_sample_covariance=False) for p, g in zip(pred, gt)])
+    assert m["PSNR"] == pytest.approx(psnr, abs=1e-9)
+    assert m["SSIM"] == pytest.approx(ssim, abs=2e-3)  # border handling differs slightly
+    assert m["img_RMSE"] == pytest.approx(np.mean([np.sqrt(((p - g) ** 2).mean()) for p, g in zip(pred, gt)]))
+
+
+def test_depth_metrics_hand_computed():
+    gt = np.array([[[2.0, 4.0], [0.0, 1.0]]])  # one unknown pixel
+    pred = np.array([[[3.0, 4.0], [9.0, 1.5]]])
+    m = depth_metrics(pred, gt)
+    assert m["depth_RMSE"] == pytest.approx(math.sqrt((1 + 0 + 0.25) / 3))
+    assert m["AbsRD"] == pytest.approx((0.5 + 0 + 0.5) / 3)
+    assert m["SqRD"] == pytest.approx((0.5 + 0 + 0.25) / 3)
+
+
+def test_rotation_error_up_to_symmetry():
+    assert angle_error(0.1, 2 * math.pi - 0.1, None) == pytest.approx(math.degrees(0.2))
+    assert angle_error(math.pi + 0.1, 0.0, math.pi) == pytest.approx(math.degrees(0.1))
+    assert angle_error(1.0, 0.0, 0.0) == 0.0
+    assert symmetry_period(0) == 0.0  # sphere (1, 1, 1)
+    assert symmetry_period(18) == pytest.approx(math.pi / 2)  # cube (1, 1, 1)
+    assert symmetry_period(19) == pytest.approx(math.pi)  # box (1, 0.75, 1)
