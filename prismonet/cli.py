@@ -226,6 +226,26 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_evaluate(args) -> int:
+    import json
+
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_table
+    from prismonet.model.io import load_model
+
+    model, info = load_model(args.checkpoint, num_slots=args.objects)
+    ds = SceneDataset(args.data, split=args.split)
+    check_compatible(model, info, ds)
+    results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet)
+    trained = info.get("model", {}).get("num_slots", "?")
+    print(format_table([(f"{trained}/{results['num_slots']}", results)]))
+    print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -279,6 +299,17 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. loss.blur=false")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=cmd_train)
+
+    ev = sub.add_parser("evaluate", help="the paper's measures for a trained model on a dataset split")
+    ev.add_argument("checkpoint", help="run folder, or model.safetensors / model.json")
+    ev.add_argument("data", help="packed or folder dataset")
+    ev.add_argument("--split", default="test")
+    ev.add_argument("--objects", type=int, help="recurrent steps (object-count generalisation); default: as trained")
+    ev.add_argument("--batch", type=int, default=16)
+    ev.add_argument("--limit", type=int, help="evaluate only the first N scenes")
+    ev.add_argument("--json", help="also write the results here")
+    ev.add_argument("--quiet", action="store_true")
+    ev.set_defaults(func=cmd_evaluate)
 
     shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
     ssub = shapes.add_subparsers(dest="shapes_command", required=True)

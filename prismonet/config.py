@@ -44,9 +44,9 @@ def to_dict(cfg) -> dict:
 
 
 def load_config(cls, path: str | Path | None = None, overrides: list[str] | None = None):
-    """Build ``cls`` from defaults, then a JSON file, then ``key=value`` overrides."""
+    """Build ``cls`` from defaults, then a JSON file (``"-"`` for none), then ``key=value`` overrides."""
     data: dict = {}
-    if path is not None:
+    if path is not None and str(path) != "-":  # "-": defaults only
         try:
             data = json.loads(Path(path).read_text())
         except FileNotFoundError:

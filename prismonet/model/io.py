@@ -63,11 +63,15 @@ def load_model(path: str | Path, num_slots: int | None = None):
         tensors, _ = load_checkpoint(stem.with_suffix(".safetensors"))
     except (FileNotFoundError, ValueError) as e:
         raise CheckpointError(str(e)) from None
-    missing, unexpected = model.load_state_dict(tensors, strict=False)
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
     if missing or unexpected:
         raise CheckpointError(f"{stem}.safetensors: does not fit this configuration (missing {missing[:3]}, unexpected {unexpected[:3]})")
-    for name, t in model.state_dict().items():
+    for name, t in expected.items():
         if t.shape != tensors[name].shape:
-            raise CheckpointError(f"{stem}.safetensors: {name} has shape {tuple(tensors[name].shape)}, expected {tuple(t.shape)}")
+            raise CheckpointError(f"{stem}.safetensors: does not fit this configuration: {name} has shape "
+                                  f"{tuple(tensors[name].shape)}, expected {tuple(t.shape)}")
+    model.load_state_dict(tensors)
     model.eval()
     return model, info

@@ -92,6 +92,15 @@ def check_dataset_fits(ds, cfg: TrainConfig) -> None:
         raise ValueError(f"{cfg.data}: split {cfg.split!r} is empty")
 
 
+def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The noisy input image and the (clipped, optionally noisy) target depth of a batch."""
+    image = batch.rgb + torch.randn(batch.rgb.shape, generator=g) * cfg.input_noise
+    depth = batch.depth.clamp(max=cfg.depth_clip)
+    if cfg.depth_noise_eta > 0:
+        depth = (depth + torch.randn(depth.shape, generator=g) * cfg.depth_noise_eta * depth**2).clamp(0, cfg.depth_clip)
+    return image, depth
+
+
 def image_grid(batch, out, path: Path, n: int = 4) -> None:
     """PNG: per scene, input | reconstruction | target depth | rendered depth | instances."""
     import cv2
@@ -169,15 +178,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
             batch = ds.batch(idx.tolist())
-            noise = torch.randn(batch.rgb.shape, generator=g) * cfg.input_noise  # same g: rank-local slice below
-            target_depth = batch.depth.clamp(max=cfg.depth_clip)
-            if cfg.depth_noise_eta > 0:
-                target_depth = (target_depth + torch.randn(target_depth.shape, generator=g) * cfg.depth_noise_eta * target_depth**2).clamp(0, cfg.depth_clip)
+            image, target_depth = make_inputs(batch, cfg, g)
             net.train()
-            out = net(batch.rgb + noise, batch.K, batch.T_world_cam, batch.ground_z)
+            out = net(image, batch.K, batch.T_world_cam, batch.ground_z)
             terms = compute_losses(model, out, batch, cfg.loss, step, target_depth)
             opt.zero_grad(set_to_none=True)
-            if not math.isfinite(float(terms.total)):
+            if not math.isfinite(float(terms.total.detach())):
                 nonfinite += 1
                 if nonfinite > cfg.max_nonfinite:
                     raise TrainingError(f"stopping at step {step}: {nonfinite} non-finite losses (max_nonfinite={cfg.max_nonfinite})")

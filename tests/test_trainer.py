@@ -1,0 +1,167 @@
+"""Training: loss goes down, exact resume, the non-finite guard, bad configs and checkpoints,
+evaluation, and DDP with two CPU processes."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from prismonet.config import ConfigError, load_config
+from prismonet.model.io import CheckpointError, load_model
+from prismonet.model.trainer import TrainConfig, TrainingError, train
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    from prismonet.data.clevr import ClevrConfig
+    from prismonet.data.generate import generate_clevr
+
+    root = tmp_path_factory.mktemp("data") / "clevr3"
+    generate_clevr(root, ClevrConfig(), split=(32, 0, 8), seed=2, workers=1, progress=False)
+    return root
+
+
+def cfg(data, **kw):
+    base = dict(data=str(data), steps=4, batch_size=4, lr=1e-3, log_every=1, image_every=1000, checkpoint_every=2, seed=3)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_short_training_reduces_loss_and_gives_finite_metrics(data, tmp_path):
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import evaluate_model
+
+    from prismonet.model.losses import compute_losses
+    from prismonet.model.prismonet import PriSMONet
+
+    run = tmp_path / "run"
+    c = cfg(data, steps=60, batch_size=8, lr=2e-3, image_every=60)
+    summary = train(c, run, progress=False)
+    torch.manual_seed(c.seed)
+    initial = PriSMONet(c.model)  # the trainer's initialisation
+    trained, _ = load_model(run)
+    batch = SceneDataset(data, "train").batch(range(16))
+
+    def loss(m):
+        with torch.no_grad():
+            return float(compute_losses(m, m(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z), batch, c.loss, 0).total)
+
+    before, after = loss(initial), loss(trained)
+    assert after < 0.8 * before, (before, after)
+    assert summary["nonfinite"] == 0 and (run / "images" / "step_0000060.png").is_file()
+    assert any((run / "tb").iterdir())
+    res = evaluate_model(trained, SceneDataset(data, "test"), batch_size=8, progress=False)
+    assert all(math.isfinite(res[k]) for k in ("AP0.5", "AR0.5", "PSNR", "SSIM", "depth_RMSE", "ARI"))
+
+
+def test_resume_after_kill_is_exact(data, tmp_path):
+    a = train(cfg(data), tmp_path / "a", progress=False)
+    train(cfg(data), tmp_path / "b", progress=False, stop_after=2)
+    assert not (tmp_path / "b" / "model.safetensors").exists()
+    b = train(cfg(data), tmp_path / "b", progress=False)
+    ma, _ = load_model(tmp_path / "a")
+    mb, _ = load_model(tmp_path / "b")
+    for (k, v), (_, w) in zip(ma.state_dict().items(), mb.state_dict().items()):
+        assert torch.equal(v, w), k
+    assert a["last"] == b["last"]
+    with pytest.raises(TrainingError, match="another config"):
+        train(cfg(data, lr=5e-4), tmp_path / "b", progress=False)
+
+
+def test_non_finite_losses_are_skipped_then_stop(data, tmp_path, monkeypatch):
+    from prismonet.model import trainer
+
+    real = trainer.compute_losses
+
+    def nan_losses(*args, **kw):
+        terms = real(*args, **kw)
+        terms.total = terms.total * float("nan")
+        return terms
+
+    monkeypatch.setattr(trainer, "compute_losses", nan_losses)
+    with pytest.raises(TrainingError, match=r"3 non-finite losses \(max_nonfinite=2\)"):
+        train(cfg(data, steps=10, max_nonfinite=2), tmp_path / "nan", progress=False)
+
+
+def test_bad_configs(tmp_path):
+    with pytest.raises(ConfigError, match=r"unknown field\(s\) \['stepz'\]"):
+        load_config(TrainConfig, overrides=["stepz=3"])
+    with pytest.raises(ConfigError, match=r"model.: unknown field\(s\) \['slots'\]"):
+        load_config(TrainConfig, overrides=["model.slots=3"])
+    with pytest.raises(ValueError, match="steps, batch_size and lr must be positive"):
+        load_config(TrainConfig, overrides=["lr=-1"])
+    with pytest.raises(ValueError, match="inputs: expected one of"):
+        load_config(TrainConfig, overrides=["model.inputs=depth"])
+    (tmp_path / "bad.json").write_text("{oops")
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        load_config(TrainConfig, tmp_path / "bad.json")
+
+
+def test_dataset_that_does_not_fit_the_model(data, tmp_path):
+    with pytest.raises(ValueError, match="images are 64x64 but the model expects 32x32"):
+        train(cfg(data, model=load_config(TrainConfig, overrides=["model.image_size=32", "model.channels=[16,16]"]).model), tmp_path / "r", progress=False)
+
+
+def test_bad_checkpoints(data, tmp_path):
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible
+
+    run = tmp_path / "run"
+    train(cfg(data, steps=1), run, progress=False)
+    with pytest.raises(CheckpointError, match="no such model config"):
+        load_model(tmp_path / "nothing")
+    # corrupted weights
+    weights = (run / "model.safetensors").read_bytes()
+    (run / "model.safetensors").write_bytes(weights[:100])
+    with pytest.raises(CheckpointError, match="not a readable safetensors checkpoint"):
+        load_model(run)
+    (run / "model.safetensors").write_bytes(weights)
+    # a checkpoint from a different configuration
+    info = json.loads((run / "model.json").read_text())
+    info["model"]["fc"] = [128, 128]
+    (run / "model.json").write_text(json.dumps(info))
+    with pytest.raises(CheckpointError, match="does not fit this configuration|has shape"):
+        load_model(run)
+    info["model"]["fc"] = [256, 256]
+    info["prior_fingerprint"] = "0000"
+    (run / "model.json").write_text(json.dumps(info))
+    with pytest.raises(CheckpointError, match="another shape prior"):
+        load_model(run)
+    (run / "model.json").write_text("{")
+    with pytest.raises(CheckpointError, match="corrupted or incompatible model config"):
+        load_model(run)
+    # a dataset with another camera
+    train(cfg(data, steps=1), tmp_path / "ok", progress=False)
+    model, info = load_model(tmp_path / "ok")
+    info["camera_K"][0][0] *= 1.5
+    with pytest.raises(ValueError, match="differs from the model's training camera"):
+        check_compatible(model, info, SceneDataset(data, "test"))
+
+
+def test_ddp_two_cpu_processes(data, tmp_path):
+    """The same training under torchrun with 2 processes (gloo). Without input noise, DDP's average
+    of the two half-batch gradients is the full-batch gradient, so the result must equal a
+    single-process run of the same config."""
+    run = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+           "-m", "prismonet", "train", "-", "--out", str(run), "--quiet",
+           "--set", f"data={data}", "--set", "steps=3", "--set", "batch_size=4", "--set", "log_every=1", "--set", "checkpoint_every=3",
+           "--set", "input_noise=0"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads([line for line in proc.stdout.splitlines() if line.startswith("{")][0])
+    assert summary["world_size"] == 2 and summary["steps"] == 3
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert len(rows) == 3 and all(math.isfinite(r["total"]) for r in rows)
+    ddp, _ = load_model(run)  # rank 0 wrote a loadable model
+    single = train(TrainConfig(data=str(data), steps=3, batch_size=4, log_every=1, checkpoint_every=3, input_noise=0.0),
+                   tmp_path / "single", progress=False)
+    ref, _ = load_model(tmp_path / "single")
+    for (k, v), (_, w) in zip(ddp.state_dict().items(), ref.state_dict().items()):
+        assert torch.allclose(v, w, atol=1e-5, rtol=1e-4), k
+    assert single["last"]["total"] != 0
