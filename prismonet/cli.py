@@ -246,6 +246,19 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_bench_train(args) -> int:
+    from prismonet.bench.train import bench_train
+
+    if args.steps <= 0 or args.batch <= 0:
+        raise ValueError("--steps and --batch must be positive")
+    r = bench_train(args.data, args.steps, args.batch, args.objects)
+    print(f"training step (batch {args.batch}, 64x64, {args.objects} objects): median {r['step_ms']:.0f} ms "
+          f"(min {r['step_ms_min']:.0f}, max {r['step_ms_max']:.0f}) over {r['steps']} steps = {r['steps_per_hour']:.0f} steps/hour")
+    print(f"inference, one 64x64 scene: median {r['infer_ms']:.1f} ms")
+    print(f"(median rendered object pixels per batch: {r['object_pixels_per_batch']})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -343,6 +356,12 @@ def build_parser() -> argparse.ArgumentParser:
     bdata.add_argument("--workers", default="1,2", help="comma-separated worker counts; the first is the baseline")
     bdata.add_argument("--repeats", type=int, default=3)
     bdata.set_defaults(func=cmd_bench_data)
+    btrain = bsub.add_parser("train", help="training-step and inference time of the scene model")
+    btrain.add_argument("--data", help="dataset (default: 64 generated scenes)")
+    btrain.add_argument("--steps", type=int, default=30)
+    btrain.add_argument("--batch", type=int, default=8)
+    btrain.add_argument("--objects", type=int, default=3)
+    btrain.set_defaults(func=cmd_bench_train)
     brender = bsub.add_parser("render", help="renderer run time against depth error, fast path vs reference")
     brender.add_argument("--batch", type=int, default=8)
     brender.add_argument("--objects", type=int, default=3)
