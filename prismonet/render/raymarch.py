@@ -17,6 +17,11 @@ import torch
 SdfFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``sdf_fn(z_sh (R, D), x_obj (R, S, 3)) -> (R, S)`` signed distance in object units."""
 
+SEARCH_CHUNK = 4
+"""Samples per ray evaluated at a time, front to back. A ray stops once it has a crossing: every
+sample before its first sign change is still evaluated, so the result is that of the full
+search, and rays that hit early skip the rest."""
+
 EPS_DENOM = 1e-9
 """Lower bound of ``f_a - f_b`` in the interpolation. The search guarantees ``f_a > 0 >= f_b``,
 but the autograd re-evaluation can round differently (other batch shapes), so the difference
@@ -58,24 +63,36 @@ def find_crossings(
     hit_idx = [torch.zeros(0, dtype=torch.long)]
     ta_all = [torch.zeros(0, dtype=o.dtype)]
     tb_all = [torch.zeros(0, dtype=o.dtype)]
+    evals = 0
     for s in range(0, R, rays_per_block):
         sl = slice(s, min(s + rays_per_block, R))
         t = t_near[sl, None] + (t_far[sl] - t_near[sl])[:, None] * frac  # (r, S)
-        x = o[sl, None, :] + t[..., None] * d[sl, None, :]
-        f = sdf_fn(z[sl], x)
-        pos = f > 0
-        change = pos[:, :-1] & ~pos[:, 1:]  # (r, S-1): outside -> inside between j and j+1
-        has = change.any(dim=1)
-        j = change.to(torch.uint8).argmax(dim=1)  # first change
-        rows = torch.nonzero(has, as_tuple=False).flatten()
-        jr = j[rows]
-        hit_idx.append(rows + s)
-        ta_all.append(t[rows, jr])
-        tb_all.append(t[rows, jr + 1])
-    ray = torch.cat(hit_idx)
-    t_a = torch.cat(ta_all)
-    t_b = torch.cat(tb_all)
-    evals = R * samples
+        o_b, d_b, z_b = o[sl], d[sl], z[sl]
+        active = torch.arange(t.shape[0])
+        last_pos = torch.zeros(t.shape[0], dtype=torch.bool)  # sign of each ray's previous sample
+        for c0 in range(0, samples, SEARCH_CHUNK):
+            c1 = min(c0 + SEARCH_CHUNK, samples)
+            ta = t[active, c0:c1]  # (n, c)
+            f = sdf_fn(z_b[active], o_b[active, None, :] + ta[..., None] * d_b[active, None, :])
+            evals += f.numel()
+            pos = f > 0
+            if c0 > 0:  # the pair straddling the chunk boundary counts too
+                pos = torch.cat([last_pos[active, None], pos], dim=1)
+            change = pos[:, :-1] & ~pos[:, 1:]  # outside -> inside between samples j and j+1
+            has = change.any(dim=1)
+            j = change.to(torch.uint8).argmax(dim=1) + (c0 - 1 if c0 > 0 else 0)  # first change
+            rows = active[has]
+            hit_idx.append(rows + s)
+            ta_all.append(t[rows, j[has]])
+            tb_all.append(t[rows, j[has] + 1])
+            last_pos[active] = pos[:, -1]
+            active = active[~has]
+            if active.numel() == 0:
+                break
+    order = torch.argsort(torch.cat(hit_idx))
+    ray = torch.cat(hit_idx)[order]
+    t_a = torch.cat(ta_all)[order]
+    t_b = torch.cat(tb_all)[order]
     for _ in range(refine_steps):
         if ray.numel() == 0:
             break
