@@ -58,7 +58,7 @@ def find_crossings(
         raise ValueError(f"samples per ray must be at least 2, got {samples}")
     R = o.shape[0]
     frac = torch.linspace(0.0, 1.0, samples, dtype=o.dtype)
-    rays_per_block = max(1, block_points // samples)
+    rays_per_block = max(1, block_points // min(samples, SEARCH_CHUNK))  # ~block_points per SDF call
     # start from empty tensors so that zero rays (all slots culled) give zero crossings
     hit_idx = [torch.zeros(0, dtype=torch.long)]
     ta_all = [torch.zeros(0, dtype=o.dtype)]
