@@ -135,3 +135,22 @@ def test_noisy_depth_switch(batch):
     assert abs(z.std().item() - 1.0) < 0.05 and abs(z.mean().item()) < 0.05
     assert not torch.equal(clean_img, batch.rgb)  # input noise is on
     assert torch.equal(make_inputs(batch, TrainConfig(input_noise=0.0), torch.Generator().manual_seed(0))[0], batch.rgb)
+
+
+def test_mask_loss_has_a_gradient_through_soft_silhouettes(batch):
+    """L_mask on binary masks alone would train nothing; with soft silhouettes it moves the pose."""
+    torch.manual_seed(0)
+    model = PriSMONet(ModelConfig(soft_mask_tau=0.05))
+    out = run(model, batch)
+    hard = out.obj_mask.float()
+    soft = out.obj_soft_mask
+    assert torch.equal(soft[hard.bool()], torch.ones_like(soft[hard.bool()]))  # 1 on hits
+    missed = (soft > 0) & ~hard.bool()
+    assert missed.any() and (soft[missed] < 0.5).all()  # in the box, outside the shape
+    terms = compute_losses(model, out, batch, LossConfig(w_mask=1.0, use_image=False, use_depth=False, use_ground=False, use_shape=False), 0)
+    assert float(terms.mask.detach()) > 0
+    terms.total.backward()
+    g = sum(p.grad.abs().sum() for p in model.encoder.parameters() if p.grad is not None)
+    assert g > 0
+    with pytest.raises(ValueError, match="needs soft silhouettes"):
+        compute_losses(PriSMONet(), run(PriSMONet(), batch), batch, LossConfig(w_mask=1.0), 0)

@@ -38,6 +38,8 @@ class ModelConfig:
     render_samples: int = 12
     render_refine_steps: int = 0
     far_depth: float = 12.0
+    soft_mask_tau: float = 0.0
+    """> 0: also render soft silhouettes (world units of SDF per unit logit), needed by L_mask."""
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUT_MODES:

@@ -9,7 +9,9 @@ L_total = l_I L_I + l_D L_D + l_gr L_gr + l_sh(t) L_sh  [+ l_int L_int + l_p L_p
   onto the ground; phi_i in world units.
 - L_sh: sum_i |z_sh,i|^2, weight falling linearly from 0.025 to 0.0025 over ``sh_steps``.
 - L_int (objects intersecting), L_p (centres projected outside the image), L_pose (pose
-  supervision with Hungarian matching): the paper's optional extras, off by default.
+  supervision with Hungarian matching), L_mask (BCE of blurred foreground masks): the paper's
+  optional extras, off by default. L_mask needs soft silhouettes (``model.soft_mask_tau > 0``):
+  the binary masks have no gradient, so a BCE on them alone would train nothing.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+
+EPS_BCE = 1e-6
+"""Predicted mask probabilities are clamped to [EPS_BCE, 1 - EPS_BCE] before the logarithms."""
 
 BLUR_KERNEL = 17
 """Odd stand-in for the paper's kernel size 16 (kornia's Gaussian blur needs odd sizes)."""
@@ -46,9 +51,10 @@ class LossConfig:
     intersection_points: int = 16
     w_outside: float = 0.0
     w_pose: float = 0.0
+    w_mask: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose"):
+        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.sh_steps <= 0 or self.blur_steps <= 0:
@@ -129,6 +135,18 @@ def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count) -> torch.Tensor:
     return torch.stack(out)
 
 
+def mask_loss(out, batch, cfg: LossConfig, step: int) -> torch.Tensor:
+    """``()`` the paper's L_mask: BCE between the blurred ground-truth foreground and the blurred
+    union of the predicted soft silhouettes."""
+    if out.obj_soft_mask is None:
+        raise ValueError("loss.w_mask > 0 needs soft silhouettes: set model.soft_mask_tau > 0")
+    pred = 1 - torch.prod(1 - out.obj_soft_mask, dim=1, keepdim=True)  # union over slots
+    gt = (batch.instance > 0).to(pred.dtype)[:, None]
+    p = blur(pred, cfg, step).clamp(EPS_BCE, 1 - EPS_BCE)
+    g = blur(gt, cfg, step)
+    return -(g * torch.log(p) + (1 - g) * torch.log(1 - p)).mean()
+
+
 @dataclass
 class LossTerms:
     """Every term, averaged over the batch (unweighted), and the weighted total."""
@@ -141,6 +159,7 @@ class LossTerms:
     intersection: torch.Tensor
     outside: torch.Tensor
     pose: torch.Tensor
+    mask: torch.Tensor
 
     def scalars(self) -> dict[str, float]:
         return {k: float(v.detach()) for k, v in self.__dict__.items()}
@@ -160,6 +179,7 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     H, W = batch.rgb.shape[-2:]
     outside = outside_loss(p, batch.K, batch.T_world_cam, W, H).mean() if cfg.w_outside > 0 else zero
     pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count).mean() if cfg.w_pose > 0 else zero
+    mask = mask_loss(out, batch, cfg, step) if cfg.w_mask > 0 else zero
     total = (cfg.w_image * image + cfg.w_depth * depth + cfg.w_ground * ground + shape_weight(cfg, step) * shape
-             + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose)
-    return LossTerms(total, image, depth, ground, shape, inter, outside, pose)
+             + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose + cfg.w_mask * mask)
+    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask)

@@ -40,6 +40,8 @@ class ModelOutput:
     obj_mask: torch.Tensor
     obj_color: torch.Tensor
     bg_depth: torch.Tensor
+    obj_soft_mask: torch.Tensor | None = None
+    """``(B, N, H, W)`` differentiable silhouettes when ``cfg.soft_mask_tau > 0``."""
 
 
 class PriSMONet(nn.Module):
@@ -69,7 +71,8 @@ class PriSMONet(nn.Module):
         return self.texture(z, x)
 
     def render_settings(self) -> RenderSettings:
-        return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps, far_depth=self.cfg.far_depth)
+        return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps,
+                              far_depth=self.cfg.far_depth, soft_mask_tau=self.cfg.soft_mask_tau)
 
     def decode_latent(self, raw: torch.Tensor) -> SceneParams:
         """Split a raw encoder output ``(B, out_dim)`` into one slot's ``SceneParams`` (K = 1)."""
@@ -119,7 +122,7 @@ class PriSMONet(nn.Module):
         cur_image = bg_color[:, :, None, None].expand(B, 3, H, W)
         cur_depth = torch.full((B, 1, H, W), float("inf"), dtype=image.dtype)
         cur_mask = torch.zeros(B, 1, H, W, dtype=image.dtype)
-        slots, depths, masks, colors = [], [], [], []
+        slots, depths, masks, colors, softs = [], [], [], [], []
         settings = self.render_settings()
         for _ in range(N):
             pi, pm = (cur_image.detach(), cur_mask.detach()) if self.cfg.detach_partials else (cur_image, cur_mask)
@@ -134,8 +137,10 @@ class PriSMONet(nn.Module):
             depths.append(d[:, 0])
             masks.append(m[:, 0])
             colors.append(c)
+            softs.append(obj.soft_mask)
         cat = lambda name: None if getattr(slots[0], name) is None else torch.cat([getattr(p, name) for p in slots], 1)
         params = SceneParams(cat("z_sh"), cat("z_tex"), cat("position"), cat("cos_sin"), cat("scale"), cat("axis"))
         obj_depth, obj_mask, obj_color = torch.stack(depths, 1), torch.stack(masks, 1), torch.stack(colors, 1)
         comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
-        return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth)
+        soft = torch.cat(softs, 1) if softs[0] is not None else None
+        return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft)

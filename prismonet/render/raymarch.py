@@ -30,18 +30,22 @@ can reach 0; the bound keeps the weight finite, and the weight is clamped to [0,
 
 @dataclass
 class Crossings:
-    """Rays with a crossing: index into the ray bundle, and the bracket ``[t_a, t_b]`` (detached)."""
+    """Rays with a crossing: index into the ray bundle, and the bracket ``[t_a, t_b]`` (detached).
+    With ``track_min``, also the rays without one (``miss_ray``) and their sample of least SDF
+    (``t_min``), for soft silhouettes."""
 
     ray: torch.Tensor
     t_a: torch.Tensor
     t_b: torch.Tensor
     sdf_evals: int
+    miss_ray: torch.Tensor | None = None
+    t_min: torch.Tensor | None = None
 
 
 @torch.no_grad()
 def find_crossings(
     sdf_fn: SdfFn, z: torch.Tensor, o: torch.Tensor, d: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor,
-    samples: int, refine_steps: int = 0, block_points: int = 16384,
+    samples: int, refine_steps: int = 0, block_points: int = 16384, track_min: bool = False,
 ) -> Crossings:
     """First +/- sign change of the SDF along each ray, from ``samples`` equidistant samples.
 
@@ -53,6 +57,7 @@ def find_crossings(
         samples: samples per ray (>= 2).
         refine_steps: bisection steps on the bracket after the search.
         block_points: SDF evaluations per block (bounds memory, keeps buffers cache-sized).
+        track_min: also return, for rays without a crossing, the sample with the least SDF.
     """
     if samples < 2:
         raise ValueError(f"samples per ray must be at least 2, got {samples}")
@@ -64,12 +69,16 @@ def find_crossings(
     ta_all = [torch.zeros(0, dtype=o.dtype)]
     tb_all = [torch.zeros(0, dtype=o.dtype)]
     evals = 0
+    miss_all = [torch.zeros(0, dtype=torch.long)]
+    tmin_all = [torch.zeros(0, dtype=o.dtype)]
     for s in range(0, R, rays_per_block):
         sl = slice(s, min(s + rays_per_block, R))
         t = t_near[sl, None] + (t_far[sl] - t_near[sl])[:, None] * frac  # (r, S)
         o_b, d_b, z_b = o[sl], d[sl], z[sl]
         active = torch.arange(t.shape[0])
         last_pos = torch.zeros(t.shape[0], dtype=torch.bool)  # sign of each ray's previous sample
+        best_f = torch.full((t.shape[0],), float("inf"), dtype=o.dtype)
+        best_t = t[:, 0].clone()
         for c0 in range(0, samples, SEARCH_CHUNK):
             c1 = min(c0 + SEARCH_CHUNK, samples)
             ta = t[active, c0:c1]  # (n, c)
@@ -86,9 +95,17 @@ def find_crossings(
             ta_all.append(t[rows, j[has]])
             tb_all.append(t[rows, j[has] + 1])
             last_pos[active] = pos[:, -1]
+            if track_min:
+                fmin, jmin = f.min(dim=1)
+                better = fmin < best_f[active]
+                best_f[active[better]] = fmin[better]
+                best_t[active[better]] = ta[better, jmin[better]]
             active = active[~has]
             if active.numel() == 0:
                 break
+        if track_min:
+            miss_all.append(active + s)
+            tmin_all.append(best_t[active])
     order = torch.argsort(torch.cat(hit_idx))
     ray = torch.cat(hit_idx)[order]
     t_a = torch.cat(ta_all)[order]
@@ -105,7 +122,9 @@ def find_crossings(
         t_a = torch.where(outside, tm, t_a)
         t_b = torch.where(outside, t_b, tm)
         evals += ray.numel()
-    return Crossings(ray, t_a, t_b, evals)
+    if not track_min:
+        return Crossings(ray, t_a, t_b, evals)
+    return Crossings(ray, t_a, t_b, evals, torch.cat(miss_all), torch.cat(tmin_all))
 
 
 def linear_root(t_a: torch.Tensor, t_b: torch.Tensor, f_a: torch.Tensor, f_b: torch.Tensor) -> torch.Tensor:

@@ -98,6 +98,9 @@ class RenderSettings:
     """Depth given to a pixel where an object is missed (the paper's "large constant")."""
     block_points: int = 16384
     """SDF evaluations per block in the no-grad search."""
+    soft_mask_tau: float = 0.0
+    """If > 0, also render differentiable soft silhouettes: 1 on hits, sigmoid(-s f_min / tau) on
+    rays that miss, with f_min the least SDF along the ray (world units, tau too). For L_mask."""
 
 
 @dataclass
@@ -110,6 +113,7 @@ class ObjectRender:
         hit_slot, hit_pix: ``(n,)`` flattened slot (``b*K + k``) and pixel of every hit.
         hit_x_obj: ``(n, 3)`` surface points in the object frame (with gradients).
         stats: ray and SDF-evaluation counts.
+        soft_mask: ``(B, K, H, W)`` soft silhouettes, or ``None`` (see ``RenderSettings.soft_mask_tau``).
     """
 
     depth: torch.Tensor
@@ -119,6 +123,7 @@ class ObjectRender:
     hit_pix: torch.Tensor
     hit_x_obj: torch.Tensor
     stats: dict = field(default_factory=dict)
+    soft_mask: torch.Tensor | None = None
 
 
 def _check_camera(K: torch.Tensor, T_world_cam: torch.Tensor, B: int, dtype) -> None:
@@ -180,8 +185,9 @@ def render_objects(
     # the search (detached)
     o_r = o_all.detach()[rays.obj]
     d_r = torch.einsum("rij,rj->ri", A.detach()[rays.obj], rays.d_cam)
+    soft = settings.soft_mask_tau > 0
     cr = find_crossings(sdf_fn, z_sh.detach()[rays.obj], o_r, d_r, rays.t_near, rays.t_far,
-                        settings.samples, settings.refine_steps, settings.block_points)
+                        settings.samples, settings.refine_steps, settings.block_points, track_min=soft)
     # the differentiable part: two SDF evaluations per hit ray
     slot = rays.obj[cr.ray]
     pix = rays.pix[cr.ray]
@@ -190,7 +196,19 @@ def render_objects(
     t_star = interpolate_surface(sdf_fn, z_sh[slot], o_h, d_h, cr.t_a, cr.t_b)
     x_obj = o_h + t_star[:, None] * d_h
     stats = {"rays": len(rays), "hits": int(slot.numel()), "sdf_evals": cr.sdf_evals + 2 * int(slot.numel())}
-    return _object_render(params, color_fn, slot, pix, t_star, x_obj, (B, Kslots, height, width), settings.far_depth, stats)
+    out = _object_render(params, color_fn, slot, pix, t_star, x_obj, (B, Kslots, height, width), settings.far_depth, stats)
+    if soft:
+        # one autograd SDF evaluation per missed ray, at its sample of least SDF
+        mslot = rays.obj[cr.miss_ray]
+        x_min = o_all[mslot] + cr.t_min[:, None] * torch.einsum("rij,rj->ri", A[mslot], rays.d_cam[cr.miss_ray])
+        f_world = sdf_fn(z_sh[mslot], x_min[:, None, :])[:, 0] * params.scale.reshape(-1).clamp_min(MIN_SCALE)[mslot]
+        HW = height * width
+        dense = torch.zeros(B * Kslots * HW, dtype=t_star.dtype)
+        dense = dense.index_put((slot * HW + pix,), torch.ones_like(t_star))
+        dense = dense.index_put((mslot * HW + rays.pix[cr.miss_ray],), torch.sigmoid(-f_world / settings.soft_mask_tau))
+        out.soft_mask = dense.reshape(B, Kslots, height, width)
+        out.stats["sdf_evals"] += int(mslot.numel())
+    return out
 
 
 def shade_winners(color_fn: ColorFn, params: SceneParams, obj: ObjectRender, bg_color: torch.Tensor, winner, hit) -> torch.Tensor:
