@@ -259,6 +259,13 @@ def cmd_bench_train(args) -> int:
     return 0
 
 
+def cmd_bench_search(args) -> int:
+    from prismonet.bench.search import bench_search
+
+    print(bench_search(args.batch, args.objects, args.repeats))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -362,6 +369,11 @@ def build_parser() -> argparse.ArgumentParser:
     btrain.add_argument("--batch", type=int, default=8)
     btrain.add_argument("--objects", type=int, default=3)
     btrain.set_defaults(func=cmd_bench_train)
+    bsearch = bsub.add_parser("search", help="chunked vs plain root search on ground-truth layouts")
+    bsearch.add_argument("--batch", type=int, default=8)
+    bsearch.add_argument("--objects", type=int, default=3)
+    bsearch.add_argument("--repeats", type=int, default=12)
+    bsearch.set_defaults(func=cmd_bench_search)
     brender = bsub.add_parser("render", help="renderer run time against depth error, fast path vs reference")
     brender.add_argument("--batch", type=int, default=8)
     brender.add_argument("--objects", type=int, default=3)

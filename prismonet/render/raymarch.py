@@ -46,6 +46,7 @@ class Crossings:
 def find_crossings(
     sdf_fn: SdfFn, z: torch.Tensor, o: torch.Tensor, d: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor,
     samples: int, refine_steps: int = 0, block_points: int = 16384, track_min: bool = False,
+    chunk: int = 0,
 ) -> Crossings:
     """First +/- sign change of the SDF along each ray, from ``samples`` equidistant samples.
 
@@ -58,12 +59,15 @@ def find_crossings(
         refine_steps: bisection steps on the bracket after the search.
         block_points: SDF evaluations per block (bounds memory, keeps buffers cache-sized).
         track_min: also return, for rays without a crossing, the sample with the least SDF.
+        chunk: samples per ray evaluated at a time (0: ``SEARCH_CHUNK``; >= samples: all at once,
+            the plain search that the chunked one reproduces).
     """
     if samples < 2:
         raise ValueError(f"samples per ray must be at least 2, got {samples}")
     R = o.shape[0]
     frac = torch.linspace(0.0, 1.0, samples, dtype=o.dtype)
-    rays_per_block = max(1, block_points // min(samples, SEARCH_CHUNK))  # ~block_points per SDF call
+    chunk = SEARCH_CHUNK if chunk <= 0 else min(chunk, samples)
+    rays_per_block = max(1, block_points // chunk)  # ~block_points per SDF call
     # start from empty tensors so that zero rays (all slots culled) give zero crossings
     hit_idx = [torch.zeros(0, dtype=torch.long)]
     ta_all = [torch.zeros(0, dtype=o.dtype)]
@@ -79,8 +83,8 @@ def find_crossings(
         last_pos = torch.zeros(t.shape[0], dtype=torch.bool)  # sign of each ray's previous sample
         best_f = torch.full((t.shape[0],), float("inf"), dtype=o.dtype)
         best_t = t[:, 0].clone()
-        for c0 in range(0, samples, SEARCH_CHUNK):
-            c1 = min(c0 + SEARCH_CHUNK, samples)
+        for c0 in range(0, samples, chunk):
+            c1 = min(c0 + chunk, samples)
             ta = t[active, c0:c1]  # (n, c)
             f = sdf_fn(z_b[active], o_b[active, None, :] + ta[..., None] * d_b[active, None, :])
             evals += f.numel()

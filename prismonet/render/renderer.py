@@ -98,6 +98,9 @@ class RenderSettings:
     """Depth given to a pixel where an object is missed (the paper's "large constant")."""
     block_points: int = 16384
     """SDF evaluations per block in the no-grad search."""
+    search_chunk: int = 0
+    """Samples per ray evaluated at a time in the search (0: the default of 4, see
+    ``raymarch.SEARCH_CHUNK``); ``>= samples`` evaluates all at once. Same result either way."""
     soft_mask_tau: float = 0.0
     """If > 0, also render differentiable soft silhouettes: 1 on hits, sigmoid(-s f_min / tau) on
     rays that miss, with f_min the least SDF along the ray (world units, tau too). For L_mask."""
@@ -187,7 +190,8 @@ def render_objects(
     d_r = torch.einsum("rij,rj->ri", A.detach()[rays.obj], rays.d_cam)
     soft = settings.soft_mask_tau > 0
     cr = find_crossings(sdf_fn, z_sh.detach()[rays.obj], o_r, d_r, rays.t_near, rays.t_far,
-                        settings.samples, settings.refine_steps, settings.block_points, track_min=soft)
+                        settings.samples, settings.refine_steps, settings.block_points, track_min=soft,
+                        chunk=settings.search_chunk)
     # the differentiable part: two SDF evaluations per hit ray
     slot = rays.obj[cr.ray]
     pix = rays.pix[cr.ray]
