@@ -1,6 +1,5 @@
 """The scene model and its losses: shapes, ablation switches doing what they claim, schedules."""
 
-import math
 
 import pytest
 import torch

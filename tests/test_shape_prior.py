@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 import torch
-import trimesh
 
 from prismonet.checkpoint import load_checkpoint, save_checkpoint
 from prismonet.shapes.clevr_set import shape_mesh

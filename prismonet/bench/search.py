@@ -35,7 +35,7 @@ def bench_search(batch: int = 8, objects: int = 3, repeats: int = 12, seed: int 
     K = cam.K[None].expand(batch, 3, 3).contiguous()
     T = cam.T_world_cam[None].expand(batch, 4, 4).contiguous()
     sdf = lambda z, x: prior.decoder(z[:, None, :], x)
-    rows, hits = [], {}
+    hits = {}
     times: dict[str, list[float]] = {"plain (all 12 samples)": [], "chunked (4 at a time)": []}
     settings = {"plain (all 12 samples)": RenderSettings(search_chunk=12), "chunked (4 at a time)": RenderSettings(search_chunk=4)}
     stats = {}

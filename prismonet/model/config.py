@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 INPUT_MODES = ("I", "I+dI", "I+M", "I+dI+M")
 

@@ -168,7 +168,6 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
 
         writer = SummaryWriter(str(run / "tb"), purge_step=start)
     log = open(run / "log.jsonl", "a") if rank == 0 else None
-    per_rank = cfg.batch_size // world
     bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", disable=not progress or rank != 0)
     step = start
     last = {}

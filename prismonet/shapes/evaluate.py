@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from prismonet.shapes.mesh import EmptyMeshError, extract_mesh
 from prismonet.shapes.metrics import (
