@@ -1,5 +1,5 @@
-"""Camera calibration with OpenCV (chessboard / ChArUco intrinsics, ground-plane pose).
+"""Camera calibration with OpenCV: chessboard / ChArUco intrinsics, OpenCV FileStorage YAML,
+and the ground-plane pose ``T_world_cam`` from one photo of a board lying on the table.
 
-Planned in the real-photos issue; the package exists now so that the layout and the single
-``pyproject.toml`` that installs ``prismonet``, ``realdata`` and ``calibration`` are in place.
+The real-photo preparation (``realdata``) and the reconstruction of real images build on it.
 """

@@ -266,6 +266,40 @@ def cmd_bench_search(args) -> int:
     return 0
 
 
+def cmd_calibrate_intrinsics(args) -> int:
+    from calibration.board import Chessboard
+    from calibration.intrinsics import calibrate_folder
+    from calibration.storage import save_calibration
+
+    cal = calibrate_folder(args.photos, Chessboard.parse(args.board, args.square), fix_aspect_ratio=args.fix_aspect)
+    for p in cal.per_image:
+        status = f"found, reprojection RMS {p['rms_px']:.3f} px" if p["found"] else "board NOT found (skipped)"
+        print(f"  {p['image']}: {status}")
+    K = cal.K
+    print(f"fx {K[0, 0]:.2f}  fy {K[1, 1]:.2f}  cx {K[0, 2]:.2f}  cy {K[1, 2]:.2f}  RMS {cal.rms:.3f} px  "
+          f"({sum(p['found'] for p in cal.per_image)} of {len(cal.per_image)} photos)")
+    print(f"wrote {save_calibration(cal, args.out)}")
+    return 0
+
+
+def cmd_calibrate_ground(args) -> int:
+    import cv2
+
+    from calibration.board import Chessboard
+    from calibration.ground import ground_pose
+    from calibration.intrinsics import CalibrationError
+    from calibration.storage import load_calibration, save_calibration
+
+    cal, _ = load_calibration(args.camera)
+    img = cv2.imread(args.photo, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise CalibrationError(f"{args.photo}: cannot be read as an image")
+    T, rms = ground_pose(img, cal.K, cal.dist, Chessboard.parse(args.board, args.square))
+    print(f"camera height above the table {T[2, 3]:.3f}, reprojection RMS {rms:.3f} px")
+    print(f"wrote {save_calibration(cal, args.out, T)} (with T_world_cam: z up, table at z = 0)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -355,6 +389,23 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("--out", required=True)
     me.set_defaults(func=cmd_shapes_mesh)
 
+    cal = sub.add_parser("calibrate", help="camera calibration with OpenCV (intrinsics, ground plane)")
+    csub = cal.add_subparsers(dest="calibrate_command", required=True)
+    ci = csub.add_parser("intrinsics", help="intrinsics and distortion from chessboard photos")
+    ci.add_argument("photos", nargs="+")
+    ci.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
+    ci.add_argument("--square", type=float, default=0.025, help="square side in world units")
+    ci.add_argument("--fix-aspect", action="store_true", help="fx = fy (as OpenCV's sample calibration)")
+    ci.add_argument("--out", required=True, help="OpenCV FileStorage YAML")
+    ci.set_defaults(func=cmd_calibrate_intrinsics)
+    cg = csub.add_parser("ground", help="T_world_cam from one photo of the board lying on the table")
+    cg.add_argument("photo")
+    cg.add_argument("--camera", required=True, help="YAML from 'calibrate intrinsics'")
+    cg.add_argument("--board", default="9x6")
+    cg.add_argument("--square", type=float, default=0.025)
+    cg.add_argument("--out", required=True)
+    cg.set_defaults(func=cmd_calibrate_ground)
+
     bench = sub.add_parser("bench", help="benchmarks (timings to record in BENCHMARKS.md)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     bdata = bsub.add_parser("data", help="dataset generation time per worker count")
@@ -389,6 +440,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
+    from calibration.intrinsics import CalibrationError
+
     from prismonet.config import ConfigError
     from prismonet.model.io import CheckpointError
     from prismonet.model.trainer import TrainingError
@@ -398,7 +451,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError,
+    except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError, CalibrationError,
             ValueError, FileNotFoundError) as e:
         print(f"prismonet: error: {e}", file=sys.stderr)
         return 2

@@ -1,0 +1,91 @@
+"""Intrinsics and distortion from photos of a chessboard (cv2.calibrateCamera)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.board import Chessboard
+
+SUBPIX_WINDOW = (11, 11)
+SUBPIX_CRITERIA = (3, 30, 1e-3)  # cv2.TERM_CRITERIA_EPS + MAX_ITER, 30 iterations, 1e-3 px
+MIN_VIEWS = 3
+"""Fewer detected boards than this cannot constrain the intrinsics."""
+
+
+class CalibrationError(ValueError):
+    """Calibration impossible: unreadable photos, too few boards found, mixed image sizes."""
+
+
+@dataclass
+class Calibration:
+    """Pinhole intrinsics ``K`` (3x3), distortion ``dist`` (OpenCV's k1 k2 p1 p2 k3), image size
+    ``(width, height)``, RMS reprojection error in pixels, and per-photo detection results."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    image_size: tuple[int, int]
+    rms: float
+    per_image: list[dict] = field(default_factory=list)
+
+
+def find_corners(gray: np.ndarray, board: Chessboard) -> np.ndarray | None:
+    """Sub-pixel inner corners ``(N, 2)`` float32, or ``None`` when the board is not found.
+
+    (OpenCV 4 returns ``(N, 1, 2)`` and OpenCV 5 ``(N, 2)``; this always gives ``(N, 2)``.)"""
+    import cv2
+
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH + cv2.CALIB_CB_NORMALIZE_IMAGE
+    ok, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows), flags=flags)
+    if not ok:
+        return None
+    return cv2.cornerSubPix(gray, corners, SUBPIX_WINDOW, (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)
+
+
+def calibrate_images(images: list[np.ndarray], board: Chessboard, names: list[str] | None = None,
+                     fix_aspect_ratio: bool = False) -> Calibration:
+    """Calibrate from greyscale or colour images of one camera."""
+    import cv2
+
+    names = names or [f"image {i}" for i in range(len(images))]
+    obj, img, per_image, size = [], [], [], None
+    for name, im in zip(names, images):
+        gray = cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im
+        if size is None:
+            size = (gray.shape[1], gray.shape[0])
+        elif (gray.shape[1], gray.shape[0]) != size:
+            raise CalibrationError(f"{name}: is {gray.shape[1]}x{gray.shape[0]}, other photos are {size[0]}x{size[1]}")
+        corners = find_corners(gray, board)
+        per_image.append({"image": name, "found": corners is not None})
+        if corners is not None:
+            obj.append(board.object_points())
+            img.append(corners)
+    if len(obj) < MIN_VIEWS:
+        raise CalibrationError(f"the {board.cols}x{board.rows} board was found in {len(obj)} of {len(images)} photos; need at least {MIN_VIEWS}")
+    flags = cv2.CALIB_FIX_ASPECT_RATIO if fix_aspect_ratio else 0
+    K0 = np.eye(3)
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, K0, None, flags=flags)
+    j = 0
+    for entry in per_image:
+        if entry["found"]:
+            proj, _ = cv2.projectPoints(obj[j], rvecs[j], tvecs[j], K, dist)
+            entry["rms_px"] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img[j]) ** 2, axis=-1))))
+            j += 1
+    return Calibration(K, dist.reshape(-1), size, float(rms), per_image)
+
+
+def calibrate_folder(paths: list[str | Path], board: Chessboard, fix_aspect_ratio: bool = False) -> Calibration:
+    """Calibrate from photo files (any format OpenCV reads)."""
+    import cv2
+
+    if not paths:
+        raise CalibrationError("no photos given")
+    images = []
+    for p in paths:
+        im = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if im is None:
+            raise CalibrationError(f"{p}: cannot be read as an image")
+        images.append(im)
+    return calibrate_images(images, board, [str(p) for p in paths], fix_aspect_ratio)
