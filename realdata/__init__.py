@@ -1,5 +1,2 @@
-"""Real photos: loading, undistortion, cropping, colour normalisation, block-tower reader.
-
-Planned in the real-photos issue; the package exists now so that the layout and the single
-``pyproject.toml`` that installs ``prismonet``, ``realdata`` and ``calibration`` are in place.
-"""
+"""Real photos: loading, undistortion, cropping and resizing with matching intrinsics, and
+colour normalisation of the table to the synthetic ground colour."""

@@ -1,0 +1,43 @@
+"""Preparing a photo for the model: undistort, crop, resize, with the camera updated to match.
+
+The camera is a ``prismonet.geometry.Camera`` (OpenCV convention); crops and resizes go through
+``crop_intrinsics`` / ``resize_intrinsics`` so that projection stays exact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from realdata.io import PhotoError
+
+
+def undistort(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Remove lens distortion, keeping the same ``K`` (cv2.undistort)."""
+    import cv2
+
+    return cv2.undistort(image, np.asarray(K, np.float64), np.asarray(dist, np.float64))
+
+
+def crop(image: np.ndarray, camera, box: tuple[int, int, int, int]):
+    """Crop to ``box = (x0, y0, width, height)``; returns ``(image, camera)``."""
+    x0, y0, w, h = (int(v) for v in box)
+    H, W = image.shape[:2]
+    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
+        raise PhotoError(f"crop box {box} does not fit in the {W}x{H} photo")
+    return image[y0 : y0 + h, x0 : x0 + w].copy(), camera.cropped(x0, y0, h, w)
+
+
+def resize(image: np.ndarray, camera, size: int):
+    """Resize to ``size x size`` (area averaging when shrinking); returns ``(image, camera)``."""
+    import cv2
+
+    H, W = image.shape[:2]
+    interp = cv2.INTER_AREA if size < min(H, W) else cv2.INTER_LINEAR
+    return cv2.resize(image, (size, size), interpolation=interp), camera.resized(size, size)
+
+
+def center_square(image: np.ndarray, camera):
+    """The largest centred square crop (the model's images are square)."""
+    H, W = image.shape[:2]
+    s = min(H, W)
+    return crop(image, camera, ((W - s) // 2, (H - s) // 2, s, s))

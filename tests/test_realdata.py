@@ -1,0 +1,100 @@
+"""Real-photo loading and preparation: EXIF, bit depths, crops and resizes that keep projection exact,
+and colour normalisation."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from prismonet.geometry.camera import Camera, intrinsics_matrix, project
+from realdata.color import ColorMapping, estimate_table_color, table_mapping
+from realdata.io import PhotoError, load_photo
+from realdata.prepare import center_square, crop, resize, undistort
+
+
+def test_bit_depths_and_greyscale(tmp_path):
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    rgb[..., 0] = 255  # red
+    cv2.imwrite(str(tmp_path / "c.png"), rgb[..., ::-1])
+    assert np.allclose(load_photo(tmp_path / "c.png")[0, 0], [1, 0, 0])
+    cv2.imwrite(str(tmp_path / "g16.png"), np.full((4, 6), 32768, np.uint16))
+    g = load_photo(tmp_path / "g16.png")
+    assert g.shape == (4, 6, 3) and np.allclose(g, 32768 / 65535)
+    cv2.imwrite(str(tmp_path / "g8.jpg"), np.full((8, 8), 100, np.uint8))
+    assert np.allclose(load_photo(tmp_path / "g8.jpg"), 100 / 255, atol=2 / 255)
+    (tmp_path / "bad.png").write_bytes(b"no")
+    with pytest.raises(PhotoError, match="cannot be read"):
+        load_photo(tmp_path / "bad.png")
+    with pytest.raises(PhotoError, match="no such photo"):
+        load_photo(tmp_path / "none.png")
+
+
+def test_exif_orientation_is_applied(tmp_path):
+    from PIL import Image
+
+    a = np.zeros((20, 40, 3), np.uint8)
+    a[:, :10] = 255  # white band on the left of a landscape image
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "rotate 90 CW to display"
+    Image.fromarray(a).save(tmp_path / "r.jpg", exif=exif, quality=95)
+    img = load_photo(tmp_path / "r.jpg")
+    assert img.shape[:2] == (40, 20)  # displayed as portrait
+    assert img[:10].mean() > 0.9 and img[-10:].mean() < 0.1  # the band is now at the top
+
+
+CAM = Camera(intrinsics_matrix(500.0, 500.0, 319.5, 239.5), torch.eye(4), 480, 640)
+
+
+def test_crop_and_resize_keep_projection_exact():
+    x = torch.tensor([[0.1, -0.05, 2.0], [-0.2, 0.1, 3.0]])
+    uv = project(x, CAM.K)
+    img = np.zeros((480, 640, 3), np.float32)
+    c_img, c_cam = crop(img, CAM, (100, 50, 400, 300))
+    assert c_img.shape == (300, 400, 3)
+    assert torch.allclose(project(x, c_cam.K), uv - torch.tensor([100.0, 50.0]))
+    s_img, s_cam = center_square(img, CAM)
+    assert s_img.shape == (480, 480, 3) and s_cam.K[0, 2].item() == pytest.approx(319.5 - 80)
+    r_img, r_cam = resize(s_img, s_cam, 64)
+    assert r_img.shape == (64, 64, 3) and (r_cam.height, r_cam.width) == (64, 64)
+    # a dot drawn at the projection stays at the projection after the resize (cv2's pixel-centre convention)
+    dot = np.zeros((480, 480), np.float32)
+    u, v = project(x[:1], s_cam.K)[0].tolist()
+    dot[round(v) - 7 : round(v) + 8, round(u) - 7 : round(u) + 8] = 1.0
+    small = cv2.resize(dot, (64, 64), interpolation=cv2.INTER_AREA)
+    vv, uu = np.mgrid[0:64, 0:64]
+    centroid = np.array([(small * uu).sum(), (small * vv).sum()]) / small.sum()
+    scale = 64 / 480
+    # cv2 maps old pixel centre c to (c + 0.5) * scale - 0.5; the dot's centre is (round(u), round(v))
+    assert np.abs(centroid - ((np.array([round(u), round(v)]) + 0.5) * scale - 0.5)).max() < 0.05
+    # and the updated intrinsics project the 3-D point exactly where cv2 puts its pixel
+    assert np.abs(project(x[:1], r_cam.K)[0].numpy() - ((np.array([u, v]) + 0.5) * scale - 0.5)).max() < 1e-4
+    with pytest.raises(PhotoError, match="does not fit"):
+        crop(img, CAM, (600, 0, 100, 100))
+
+
+def test_undistort_inverts_opencv_distortion():
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    dist = np.array([-0.2, 0.05, 0.0, 0.0, 0.0])
+    pts = np.array([[[100.0, 80.0]], [[500.0, 400.0]]])
+    # distort: normalised -> distorted pixels
+    norm = cv2.undistortPoints(pts, K, np.zeros(5))  # (x, y) on z = 1
+    obj = np.concatenate([norm.reshape(-1, 2), np.ones((2, 1))], 1)
+    distorted, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+    img = np.zeros((480, 640), np.float32)
+    for p in distorted.reshape(-1, 2):
+        img[int(round(p[1])) - 2 : int(round(p[1])) + 3, int(round(p[0])) - 2 : int(round(p[0])) + 3] = 1
+    out = undistort(img, K, dist)
+    for p in pts.reshape(-1, 2):
+        assert out[int(p[1]) - 1 : int(p[1]) + 2, int(p[0]) - 1 : int(p[0]) + 2].max() > 0.5
+
+
+def test_table_colour_and_mapping():
+    rng = np.random.default_rng(0)
+    img = np.clip(np.full((64, 64, 3), [0.55, 0.45, 0.35]) + rng.normal(0, 0.01, (64, 64, 3)), 0, 1).astype(np.float32)
+    img[40:50, 10:20] = [0.9, 0.1, 0.1]  # an object on the table
+    table = estimate_table_color(img)
+    assert np.allclose(table, [0.55, 0.45, 0.35], atol=0.01)
+    m = table_mapping(table, np.array([150, 150, 150]) / 255)
+    out = m.apply(img)
+    assert np.allclose(estimate_table_color(out), 150 / 255, atol=0.01)
+    assert ColorMapping(**m.to_dict()) == m  # recordable
