@@ -288,6 +288,7 @@ def cmd_calibrate_ground(args) -> int:
     from calibration.board import Chessboard
     from calibration.ground import ground_pose
     from calibration.intrinsics import CalibrationError
+    from realdata.io import PhotoError
     from calibration.storage import load_calibration, save_calibration
 
     cal, _ = load_calibration(args.camera)
@@ -297,6 +298,21 @@ def cmd_calibrate_ground(args) -> int:
     T, rms = ground_pose(img, cal.K, cal.dist, Chessboard.parse(args.board, args.square))
     print(f"camera height above the table {T[2, 3]:.3f}, reprojection RMS {rms:.3f} px")
     print(f"wrote {save_calibration(cal, args.out, T)} (with T_world_cam: z up, table at z = 0)")
+    return 0
+
+
+def cmd_real_prepare(args) -> int:
+    from realdata.pipeline import prepare_photos
+
+    box = tuple(int(v) for v in args.box.split(",")) if args.box else None
+    if box is not None and len(box) != 4:
+        raise ValueError(f"--box: expected x0,y0,width,height, got {args.box!r}")
+    gain = tuple(float(v) for v in args.gain.split(",")) if args.gain else None
+    recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain)
+    for r in recs:
+        g = r["color_mapping"]["gain"]
+        print(f"  {r['photo']}: crop {r['crop_box']}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
+    print(f"wrote {len(recs)} prepared photos to {args.out} (folder dataset: rgb/, annotations/, dataset.json)")
     return 0
 
 
@@ -406,6 +422,18 @@ def build_parser() -> argparse.ArgumentParser:
     cg.add_argument("--out", required=True)
     cg.set_defaults(func=cmd_calibrate_ground)
 
+    real = sub.add_parser("real", help="real photos: prepare them for the model")
+    rsub = real.add_subparsers(dest="real_command", required=True)
+    rp = rsub.add_parser("prepare", help="undistort, crop, resize and colour-normalise photos")
+    rp.add_argument("photos", nargs="+")
+    rp.add_argument("--out", required=True)
+    rp.add_argument("--size", type=int, default=64)
+    rp.add_argument("--camera", help="calibration YAML (prismonet calibrate)")
+    rp.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
+    rp.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
+    rp.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
+    rp.set_defaults(func=cmd_real_prepare)
+
     bench = sub.add_parser("bench", help="benchmarks (timings to record in BENCHMARKS.md)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     bdata = bsub.add_parser("data", help="dataset generation time per worker count")
@@ -441,6 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
     from calibration.intrinsics import CalibrationError
+    from realdata.io import PhotoError
 
     from prismonet.config import ConfigError
     from prismonet.model.io import CheckpointError
@@ -451,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError, CalibrationError,
+    except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError, CalibrationError, PhotoError,
             ValueError, FileNotFoundError) as e:
         print(f"prismonet: error: {e}", file=sys.stderr)
         return 2

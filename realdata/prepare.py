@@ -41,3 +41,30 @@ def center_square(image: np.ndarray, camera):
     H, W = image.shape[:2]
     s = min(H, W)
     return crop(image, camera, ((W - s) // 2, (H - s) // 2, s, s))
+
+
+TABLE_TOLERANCE = 0.12
+"""Max RGB distance (0-1 units) from the table colour for a pixel to count as table."""
+
+
+def auto_table_box(image: np.ndarray) -> tuple[int, int, int, int]:
+    """A square ``(x0, y0, side, side)`` around the table: the bounding box of the largest region
+    of table-coloured pixels (morphologically closed), grown to a square and kept in the photo."""
+    import cv2
+
+    from realdata.color import estimate_table_color
+
+    table = estimate_table_color(image)
+    mask = (np.linalg.norm(image - table, axis=-1) < TABLE_TOLERANCE).astype(np.uint8)
+    k = max(3, min(image.shape[:2]) // 40) | 1
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask)
+    if n <= 1:
+        raise PhotoError("no table region found (no large area of one colour)")
+    i = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    x, y, w, h = (int(v) for v in stats[i, :4])
+    H, W = image.shape[:2]
+    side = min(max(w, h), H, W)
+    x0 = min(max(0, x + w // 2 - side // 2), W - side)
+    y0 = min(max(0, y + h // 2 - side // 2), H - side)
+    return x0, y0, side, side

@@ -98,3 +98,52 @@ def test_table_colour_and_mapping():
     out = m.apply(img)
     assert np.allclose(estimate_table_color(out), 150 / 255, atol=0.01)
     assert ColorMapping(**m.to_dict()) == m  # recordable
+
+
+def test_auto_table_box_finds_the_table():
+    img = np.zeros((300, 400, 3), np.float32)
+    img[100:280, 50:330] = [0.5, 0.45, 0.4]  # the table
+    img[150:170, 100:130] = [0.1, 0.2, 0.8]  # an object on it
+    from realdata.prepare import auto_table_box
+
+    x0, y0, w, h = auto_table_box(img)
+    assert w == h == 280 and 0 <= y0 <= 100 and y0 + h >= 280 and x0 <= 50 and x0 + w >= 330 - 1
+
+
+def test_block_tower_reader_on_a_fixture(tmp_path):
+    from realdata.blocktowers import load_tower, read_split
+
+    (tmp_path / "recordings").mkdir()
+    for n in (1, 2):
+        cv2.imwrite(str(tmp_path / "recordings" / f"img_frame1_{n}.png"), np.full((120, 160, 3), 60 * n, np.uint8))
+    (tmp_path / "splits" / "real").mkdir(parents=True)
+    (tmp_path / "splits" / "real" / "test.txt").write_text("img_frame1_1.png 0\nimg_frame1_2.png 1\n")
+    photos = read_split(tmp_path, "real")
+    assert [p.label for p in photos] == [0, 1]
+    img = load_tower(photos[1], None, 64)
+    assert img.shape == (64, 64, 3) and np.allclose(img, 120 / 255, atol=1e-6)
+    (tmp_path / "splits" / "real" / "test.txt").write_text("img_frame1_1.png maybe\n")
+    with pytest.raises(PhotoError, match="expected 'file label'"):
+        read_split(tmp_path, "real")
+    with pytest.raises(PhotoError, match="no such split listing"):
+        read_split(tmp_path, "sim")
+
+
+def test_prepare_writes_a_folder_dataset_the_loader_reads(tmp_path):
+    from prismonet.data.dataset import SceneDataset
+    from realdata.pipeline import prepare_photos
+
+    photo = np.zeros((240, 320, 3), np.uint8)
+    photo[:] = (90, 110, 130)  # BGR table
+    photo[100:130, 140:180] = (20, 20, 200)
+    cv2.imwrite(str(tmp_path / "p.png"), photo)
+    recs = prepare_photos([tmp_path / "p.png"], tmp_path / "out", size=64)
+    ds = SceneDataset(tmp_path / "out")
+    b = ds.batch([0])
+    assert b.rgb.shape == (1, 3, 64, 64)
+    assert np.allclose(estimate_table_color(b.rgb[0].permute(1, 2, 0).numpy()), 150 / 255, atol=0.01)
+    # camera: nominal fx = 320 on the 240x240 centre crop, scaled by 64 / 240
+    assert b.K[0, 0, 0].item() == pytest.approx(320 * 64 / 240, rel=1e-5)
+    assert recs[0]["crop_box"] == [40, 0, 240, 240] and "gain" in recs[0]["color_mapping"]
+    with pytest.raises(ValueError, match="normalize=manual needs a gain"):
+        prepare_photos([tmp_path / "p.png"], tmp_path / "o2", normalize="manual")
