@@ -288,7 +288,6 @@ def cmd_calibrate_ground(args) -> int:
     from calibration.board import Chessboard
     from calibration.ground import ground_pose
     from calibration.intrinsics import CalibrationError
-    from realdata.io import PhotoError
     from calibration.storage import load_calibration, save_calibration
 
     cal, _ = load_calibration(args.camera)
