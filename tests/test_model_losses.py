@@ -153,3 +153,18 @@ def test_mask_loss_has_a_gradient_through_soft_silhouettes(batch):
     assert g > 0
     with pytest.raises(ValueError, match="needs soft silhouettes"):
         compute_losses(PriSMONet(), run(PriSMONet(), batch), batch, LossConfig(w_mask=1.0), 0)
+
+
+def test_mask_from_depth_matches_the_instance_mask(batch):
+    """The foreground implied by depth and the known ground plane is the true instance mask, except
+    where depth cannot tell: beyond the far clip (12, where the ground is clipped too) and where
+    an object meets the ground within the margin."""
+    from prismonet.model.losses import LossConfig as LC
+    from prismonet.render.background import plane_depth
+
+    bg = plane_depth(batch.K, batch.T_world_cam, 64, 64, batch.ground_z)
+    fg = (batch.depth < bg - LC().mask_depth_margin)[:, 0]
+    truth = batch.instance > 0
+    assert (fg & ~truth).sum() == 0  # never foreground where there is no object
+    seen = (bg[:, 0] < 12.0 - 1e-3)  # ground not clipped: depth can show what stands on it
+    assert (fg == truth)[seen].float().mean() > 0.99

@@ -52,6 +52,10 @@ class LossConfig:
     w_outside: float = 0.0
     w_pose: float = 0.0
     w_mask: float = 0.0
+    mask_from_depth: bool = False
+    """L_mask's target from the depth image alone: pixels in front of the known ground plane by
+    more than ``mask_depth_margin``. No labels: the RGB-D input and the plane already imply it."""
+    mask_depth_margin: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask"):
@@ -135,13 +139,18 @@ def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count) -> torch.Tensor:
     return torch.stack(out)
 
 
-def mask_loss(out, batch, cfg: LossConfig, step: int) -> torch.Tensor:
-    """``()`` the paper's L_mask: BCE between the blurred ground-truth foreground and the blurred
-    union of the predicted soft silhouettes."""
+def mask_loss(out, batch, cfg: LossConfig, step: int, target_depth: torch.Tensor | None = None) -> torch.Tensor:
+    """``()`` the paper's L_mask: BCE between the blurred foreground target and the blurred union
+    of the predicted soft silhouettes. The target is the ground-truth instance mask, or, with
+    ``mask_from_depth``, the pixels whose depth lies in front of the known ground plane."""
     if out.obj_soft_mask is None:
         raise ValueError("loss.w_mask > 0 needs soft silhouettes: set model.soft_mask_tau > 0")
     pred = 1 - torch.prod(1 - out.obj_soft_mask, dim=1, keepdim=True)  # union over slots
-    gt = (batch.instance > 0).to(pred.dtype)[:, None]
+    if cfg.mask_from_depth:
+        d = batch.depth if target_depth is None else target_depth
+        gt = ((d > 0) & (d < out.bg_depth - cfg.mask_depth_margin)).to(pred.dtype)
+    else:
+        gt = (batch.instance > 0).to(pred.dtype)[:, None]
     p = blur(pred, cfg, step).clamp(EPS_BCE, 1 - EPS_BCE)
     g = blur(gt, cfg, step)
     return -(g * torch.log(p) + (1 - g) * torch.log(1 - p)).mean()
@@ -179,7 +188,7 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     H, W = batch.rgb.shape[-2:]
     outside = outside_loss(p, batch.K, batch.T_world_cam, W, H).mean() if cfg.w_outside > 0 else zero
     pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count).mean() if cfg.w_pose > 0 else zero
-    mask = mask_loss(out, batch, cfg, step) if cfg.w_mask > 0 else zero
+    mask = mask_loss(out, batch, cfg, step, target_depth) if cfg.w_mask > 0 else zero
     total = (cfg.w_image * image + cfg.w_depth * depth + cfg.w_ground * ground + shape_weight(cfg, step) * shape
              + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose + cfg.w_mask * mask)
     return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask)
