@@ -165,3 +165,29 @@ def test_ddp_two_cpu_processes(data, tmp_path):
     for (k, v), (_, w) in zip(ddp.state_dict().items(), ref.state_dict().items()):
         assert torch.allclose(v, w, atol=1e-5, rtol=1e-4), k
     assert single["last"]["total"] != 0
+
+
+def test_sigterm_saves_a_checkpoint_then_resumes(data, tmp_path):
+    """``kill`` (SIGTERM) ends training like Ctrl-C: a checkpoint at the last completed step."""
+    import signal
+    import time
+
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "prismonet", "train", "-", "--out", str(run), "--quiet", "--set", f"data={data}",
+           "--set", "steps=1000", "--set", "batch_size=2", "--set", "log_every=1", "--set", "checkpoint_every=1000"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not ((run / "log.jsonl").is_file() and len((run / "log.jsonl").read_text().splitlines()) >= 3):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    from prismonet.checkpoint import load_checkpoint
+
+    _, meta = load_checkpoint(run / "checkpoint.safetensors")
+    logged = len((run / "log.jsonl").read_text().splitlines())
+    assert meta["step"] >= 3 and meta["step"] in (logged, logged + 1)
+    # and the run resumes from it
+    same = TrainConfig(data=str(data), steps=meta["step"] + 1, batch_size=2, log_every=1, checkpoint_every=1000)
+    summary = train(same, run, progress=False)
+    assert summary["steps"] == meta["step"] + 1

@@ -84,6 +84,23 @@ def _dist() -> tuple[int, int]:
     return (torch.distributed.get_rank() if world > 1 else 0), world
 
 
+def _interrupt_on_sigterm():
+    """Make SIGTERM (``kill``, a scheduler's stop) end training like Ctrl-C: with a checkpoint.
+
+    Background jobs started by a non-interactive shell ignore SIGINT, so ``kill`` is the usual
+    way to stop them. Returns the previous handler, or ``None`` off the main thread."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    return signal.signal(signal.SIGTERM, handler)
+
+
 def check_dataset_fits(ds, cfg: TrainConfig) -> None:
     H, W = ds.arrays["rgb"].shape[1:3]
     if (H, W) != (cfg.model.image_size, cfg.model.image_size):
@@ -171,6 +188,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", disable=not progress or rank != 0)
     step = start
     last = {}
+    previous_term = _interrupt_on_sigterm()
     try:
         while step < cfg.steps:
             t0 = time.perf_counter()
@@ -213,6 +231,10 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
         save(step)  # nothing lost: rerun the same command to resume from here
         raise
     finally:
+        if previous_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous_term)
         bar.close()
         if writer is not None:
             writer.close()
