@@ -10,22 +10,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.board import Chessboard
-from calibration.intrinsics import CalibrationError, find_corners
+from calibration.intrinsics import CalibrationError
 
 T_WORLD_BOARD = np.diag([1.0, -1.0, -1.0, 1.0])
 """Board frame -> z-up world frame (half turn about x)."""
 
 
-def ground_pose(image: np.ndarray, K: np.ndarray, dist: np.ndarray, board: Chessboard) -> tuple[np.ndarray, float]:
+def ground_pose(image: np.ndarray, K: np.ndarray, dist: np.ndarray, board) -> tuple[np.ndarray, float]:
     """``(T_world_cam (4, 4), rms reprojection error in px)`` from a photo of the board on the table."""
     import cv2
 
     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    corners = find_corners(gray, board)
-    if corners is None:
-        raise CalibrationError(f"the {board.cols}x{board.rows} board was not found in the ground-plane photo")
-    obj = board.object_points()
+    found = board.detect(gray)
+    if found is None:
+        raise CalibrationError("the board was not found in the ground-plane photo")
+    obj, corners = found
     ok, rvec, tvec = cv2.solvePnP(obj, corners, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
         raise CalibrationError("solvePnP failed on the ground-plane photo")

@@ -44,26 +44,27 @@ def find_corners(gray: np.ndarray, board: Chessboard) -> np.ndarray | None:
     return cv2.cornerSubPix(gray, corners, SUBPIX_WINDOW, (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)
 
 
-def calibrate_images(images: list[np.ndarray], board: Chessboard, names: list[str] | None = None,
+def calibrate_images(images: list[np.ndarray], board, names: list[str] | None = None,
                      fix_aspect_ratio: bool = False) -> Calibration:
-    """Calibrate from greyscale or colour images of one camera."""
+    """Calibrate from greyscale or colour images of one camera; ``board``: ``Chessboard`` or ``Charuco``."""
     import cv2
 
     names = names or [f"image {i}" for i in range(len(images))]
     obj, img, per_image, size = [], [], [], None
+    label = f"{board.cols}x{board.rows} board" if isinstance(board, Chessboard) else f"{board.squares_x}x{board.squares_y} ChArUco board"
     for name, im in zip(names, images):
         gray = cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im
         if size is None:
             size = (gray.shape[1], gray.shape[0])
         elif (gray.shape[1], gray.shape[0]) != size:
             raise CalibrationError(f"{name}: is {gray.shape[1]}x{gray.shape[0]}, other photos are {size[0]}x{size[1]}")
-        corners = find_corners(gray, board)
-        per_image.append({"image": name, "found": corners is not None})
-        if corners is not None:
-            obj.append(board.object_points())
-            img.append(corners)
+        found = board.detect(gray)
+        per_image.append({"image": name, "found": found is not None})
+        if found is not None:
+            obj.append(found[0])
+            img.append(found[1])
     if len(obj) < MIN_VIEWS:
-        raise CalibrationError(f"the {board.cols}x{board.rows} board was found in {len(obj)} of {len(images)} photos; need at least {MIN_VIEWS}")
+        raise CalibrationError(f"the {label} was found in {len(obj)} of {len(images)} photos; need at least {MIN_VIEWS}")
     flags = cv2.CALIB_FIX_ASPECT_RATIO if fix_aspect_ratio else 0
     K0 = np.eye(3)
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, K0, None, flags=flags)
@@ -76,7 +77,7 @@ def calibrate_images(images: list[np.ndarray], board: Chessboard, names: list[st
     return Calibration(K, dist.reshape(-1), size, float(rms), per_image)
 
 
-def calibrate_folder(paths: list[str | Path], board: Chessboard, fix_aspect_ratio: bool = False) -> Calibration:
+def calibrate_folder(paths: list[str | Path], board, fix_aspect_ratio: bool = False) -> Calibration:
     """Calibrate from photo files (any format OpenCV reads)."""
     import cv2
 

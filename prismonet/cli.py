@@ -266,12 +266,18 @@ def cmd_bench_search(args) -> int:
     return 0
 
 
+def _board(args):
+    from calibration.board import Charuco, Chessboard
+
+    grid = Chessboard.parse(args.board, args.square)
+    return Charuco(grid.cols, grid.rows, args.square, args.marker, args.dictionary) if args.charuco else grid
+
+
 def cmd_calibrate_intrinsics(args) -> int:
-    from calibration.board import Chessboard
     from calibration.intrinsics import calibrate_folder
     from calibration.storage import save_calibration
 
-    cal = calibrate_folder(args.photos, Chessboard.parse(args.board, args.square), fix_aspect_ratio=args.fix_aspect)
+    cal = calibrate_folder(args.photos, _board(args), fix_aspect_ratio=args.fix_aspect)
     for p in cal.per_image:
         status = f"found, reprojection RMS {p['rms_px']:.3f} px" if p["found"] else "board NOT found (skipped)"
         print(f"  {p['image']}: {status}")
@@ -285,7 +291,6 @@ def cmd_calibrate_intrinsics(args) -> int:
 def cmd_calibrate_ground(args) -> int:
     import cv2
 
-    from calibration.board import Chessboard
     from calibration.ground import ground_pose
     from calibration.intrinsics import CalibrationError
     from calibration.storage import load_calibration, save_calibration
@@ -294,7 +299,7 @@ def cmd_calibrate_ground(args) -> int:
     img = cv2.imread(args.photo, cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise CalibrationError(f"{args.photo}: cannot be read as an image")
-    T, rms = ground_pose(img, cal.K, cal.dist, Chessboard.parse(args.board, args.square))
+    T, rms = ground_pose(img, cal.K, cal.dist, _board(args))
     print(f"camera height above the table {T[2, 3]:.3f}, reprojection RMS {rms:.3f} px")
     print(f"wrote {save_calibration(cal, args.out, T)} (with T_world_cam: z up, table at z = 0)")
     return 0
@@ -408,8 +413,11 @@ def build_parser() -> argparse.ArgumentParser:
     csub = cal.add_subparsers(dest="calibrate_command", required=True)
     ci = csub.add_parser("intrinsics", help="intrinsics and distortion from chessboard photos")
     ci.add_argument("photos", nargs="+")
-    ci.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
+    ci.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6); with --charuco: squares")
     ci.add_argument("--square", type=float, default=0.025, help="square side in world units")
+    ci.add_argument("--charuco", action="store_true", help="a ChArUco board (with --marker, --dictionary)")
+    ci.add_argument("--marker", type=float, default=0.03, help="ChArUco marker side")
+    ci.add_argument("--dictionary", default="DICT_4X4_50", help="ArUco dictionary name")
     ci.add_argument("--fix-aspect", action="store_true", help="fx = fy (as OpenCV's sample calibration)")
     ci.add_argument("--out", required=True, help="OpenCV FileStorage YAML")
     ci.set_defaults(func=cmd_calibrate_intrinsics)
@@ -418,6 +426,9 @@ def build_parser() -> argparse.ArgumentParser:
     cg.add_argument("--camera", required=True, help="YAML from 'calibrate intrinsics'")
     cg.add_argument("--board", default="9x6")
     cg.add_argument("--square", type=float, default=0.025)
+    cg.add_argument("--charuco", action="store_true")
+    cg.add_argument("--marker", type=float, default=0.03)
+    cg.add_argument("--dictionary", default="DICT_4X4_50")
     cg.add_argument("--out", required=True)
     cg.set_defaults(func=cmd_calibrate_ground)
 

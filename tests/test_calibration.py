@@ -106,7 +106,7 @@ def test_bad_inputs(tmp_path):
     imgs, _ = synthetic_views(3)
     with pytest.raises(CalibrationError, match="other photos are 640x480"):
         calibrate_images(imgs + [imgs[0][:240, :320]], BOARD)
-    with pytest.raises(CalibrationError, match="board was not found"):
+    with pytest.raises(CalibrationError, match="board was not found in the ground-plane photo"):
         ground_pose(blank[0], K_TRUE, np.zeros(5), BOARD)
     with pytest.raises(CalibrationError, match="no such calibration file"):
         load_calibration(tmp_path / "none.yml")
@@ -126,3 +126,22 @@ def test_calibrate_cli(tmp_path, capsys):
     assert T is not None and T[2, 3] > 0
     assert main(["calibrate", "ground", photos[0], "--camera", str(tmp_path / "none.yml"), "--out", str(tmp_path / "g.yml")]) == 2
     assert "no such calibration file" in capsys.readouterr().err
+
+
+def test_charuco_synthetic_calibration_and_ground_pose():
+    from calibration.board import Charuco
+
+    board = Charuco(7, 5, 0.04, 0.03)
+    # 24 corners per view: with few, near-frontal views the principal point trades off against
+    # the distortion terms (8 views at +-0.35 rad gave cx 3 px off), so use 16 at +-0.5 rad
+    rng = np.random.default_rng(3)
+    Ts = [pose(rng.uniform(-0.5, 0.5, 3), np.array([-0.14, -0.1, 0.6]) + rng.uniform(-0.04, 0.04, 3)) for _ in range(16)]
+    imgs = [render_board(board, K_TRUE, T, (640, 480)) for T in Ts]
+    cal = calibrate_images(imgs, board)
+    assert all(p["found"] for p in cal.per_image)
+    assert np.abs(cal.K - K_TRUE).max() < 1.0 and cal.rms < 0.3
+    T_world_cam, rms = ground_pose(imgs[0], K_TRUE, np.zeros(5), board)
+    expected = np.diag([1.0, -1.0, -1.0, 1.0]) @ np.linalg.inv(Ts[0])
+    assert rms < 0.3 and np.abs(T_world_cam - expected).max() < 3e-3
+    with pytest.raises(ValueError, match="unknown ArUco dictionary"):
+        Charuco(dictionary="DICT_NOPE")
