@@ -320,6 +320,45 @@ def cmd_real_prepare(args) -> int:
     return 0
 
 
+def cmd_reconstruct(args) -> int:
+    import json
+
+    import torch
+
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible
+    from prismonet.model.io import load_model
+    from prismonet.viz.decomposition import decomposition_figure
+
+    model, info = load_model(args.checkpoint, num_slots=args.objects)
+    ds = SceneDataset(args.data, split=args.split)
+    H, W = ds.arrays["rgb"].shape[1:3]
+    if (H, W) != (model.cfg.image_size, model.cfg.image_size):
+        raise ValueError(f"{args.data}: images are {W}x{H} but the model expects {model.cfg.image_size}x{model.cfg.image_size}")
+    if not args.any_camera:
+        check_compatible(model, info, ds)
+    n = len(ds) if args.count is None else min(args.count, len(ds))
+    out_dir = Path(args.out)
+    has_depth = bool((ds.arrays["depth"][:n] > 0).any())
+    with torch.no_grad():
+        for s in range(0, n, 8):
+            idx = list(range(s, min(s + 8, n)))
+            b = ds.batch(idx)
+            out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=args.objects)
+            for j, i in enumerate(idx):
+                name = ds.names[i]
+                fig = decomposition_figure(b.rgb, out, j, out_dir / f"{name}.png", b.depth if has_depth else None)
+                p = out.latents.params
+                scene = {"objects": [{"position": p.position[j, k].tolist(), "cos_sin": p.cos_sin[j, k].tolist(),
+                                      "scale": float(p.scale[j, k]), "z_sh": p.z_sh[j, k].tolist(), "z_tex": p.z_tex[j, k].tolist()}
+                                     for k in range(p.scale.shape[1])],
+                         "bg_color": out.latents.bg_color[j].tolist()}
+                (out_dir / f"{name}.json").write_text(json.dumps(scene, indent=1))
+                print(f"  {fig}")
+    print(f"wrote {n} figures and latent scenes to {out_dir}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -384,6 +423,16 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", help="also write the results here")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
+
+    rc = sub.add_parser("reconstruct", help="decompose scenes (synthetic or prepared real photos): a figure and the latent scene each")
+    rc.add_argument("checkpoint", help="run folder, or model.safetensors / model.json")
+    rc.add_argument("data", help="packed or folder dataset (e.g. the output of 'real prepare')")
+    rc.add_argument("--out", required=True)
+    rc.add_argument("--split", default="test")
+    rc.add_argument("--count", type=int, help="only the first N scenes")
+    rc.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
+    rc.add_argument("--any-camera", action="store_true", help="allow a camera that differs from training (real photos)")
+    rc.set_defaults(func=cmd_reconstruct)
 
     shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
     ssub = shapes.add_subparsers(dest="shapes_command", required=True)

@@ -191,3 +191,18 @@ def test_sigterm_saves_a_checkpoint_then_resumes(data, tmp_path):
     same = TrainConfig(data=str(data), steps=meta["step"] + 1, batch_size=2, log_every=1, checkpoint_every=1000)
     summary = train(same, run, progress=False)
     assert summary["steps"] == meta["step"] + 1
+
+
+def test_reconstruct_command_writes_figures_and_latent_scenes(data, tmp_path, capsys):
+    import cv2
+
+    from prismonet.cli import main
+
+    train(cfg(data, steps=1), tmp_path / "run", progress=False)
+    assert main(["reconstruct", str(tmp_path / "run"), str(data), "--count", "2", "--out", str(tmp_path / "rec")]) == 0
+    fig = cv2.imread(str(tmp_path / "rec" / "0.png"))
+    assert fig is not None and fig.shape[1] > fig.shape[0]  # two rows of panels, five wide
+    scene = json.loads((tmp_path / "rec" / "0.json").read_text())
+    assert len(scene["objects"]) == 3 and len(scene["objects"][0]["z_sh"]) == 8
+    assert main(["reconstruct", str(tmp_path / "run"), str(data), "--count", "1", "--objects", "5", "--out", str(tmp_path / "rec5")]) == 0
+    assert len(json.loads((tmp_path / "rec5" / "0.json").read_text())["objects"]) == 5
