@@ -206,3 +206,14 @@ def test_reconstruct_command_writes_figures_and_latent_scenes(data, tmp_path, ca
     assert len(scene["objects"]) == 3 and len(scene["objects"][0]["z_sh"]) == 8
     assert main(["reconstruct", str(tmp_path / "run"), str(data), "--count", "1", "--objects", "5", "--out", str(tmp_path / "rec5")]) == 0
     assert len(json.loads((tmp_path / "rec5" / "0.json").read_text())["objects"]) == 5
+
+
+def test_checkpoint_from_before_a_new_config_field_still_resumes(data, tmp_path):
+    from prismonet.checkpoint import load_checkpoint, save_checkpoint
+
+    run = tmp_path / "run"
+    train(cfg(data), run, progress=False, stop_after=2)
+    tensors, meta = load_checkpoint(run / "checkpoint.safetensors")
+    del meta["config"]["loss"]["mask_from_depth"]  # as written before that field existed
+    save_checkpoint(run / "checkpoint.safetensors", tensors, meta)
+    assert train(cfg(data), run, progress=False)["steps"] == 4

@@ -77,6 +77,17 @@ def _resume_key(d: dict) -> dict:
     return {k: v for k, v in d.items() if k not in RESUME_IGNORED}
 
 
+def _normalised(saved: dict) -> dict:
+    """A saved config rebuilt through ``TrainConfig``: fields added since it was written take
+    their defaults, so older checkpoints still resume; unknown or invalid ones stay a mismatch."""
+    from prismonet.config import ConfigError, _build
+
+    try:
+        return json.loads(json.dumps(asdict(_build(TrainConfig, saved, ""))))
+    except (ConfigError, TypeError, ValueError):
+        return saved
+
+
 def _dist() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not torch.distributed.is_initialized():
@@ -165,7 +176,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     start, nonfinite, elapsed = 0, 0, 0.0
     if ckpt.is_file():
         tensors, meta = load_checkpoint(ckpt)
-        if _resume_key(meta.get("config", {})) != _resume_key(cfg_json):
+        if _resume_key(_normalised(meta.get("config", {}))) != _resume_key(cfg_json):
             raise TrainingError(f"{ckpt}: was written with another config; use a new run folder or the same config")
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         load_optimizer(opt, tensors, meta["optimizer"])
