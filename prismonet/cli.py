@@ -359,6 +359,14 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _add_board_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6); with --charuco: squares")
+    p.add_argument("--square", type=float, default=0.025, help="square side in world units")
+    p.add_argument("--charuco", action="store_true", help="a ChArUco board (with --marker, --dictionary)")
+    p.add_argument("--marker", type=float, default=0.03, help="ChArUco marker side")
+    p.add_argument("--dictionary", default="DICT_4X4_50", help="ArUco dictionary name")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -462,22 +470,14 @@ def build_parser() -> argparse.ArgumentParser:
     csub = cal.add_subparsers(dest="calibrate_command", required=True)
     ci = csub.add_parser("intrinsics", help="intrinsics and distortion from chessboard photos")
     ci.add_argument("photos", nargs="+")
-    ci.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6); with --charuco: squares")
-    ci.add_argument("--square", type=float, default=0.025, help="square side in world units")
-    ci.add_argument("--charuco", action="store_true", help="a ChArUco board (with --marker, --dictionary)")
-    ci.add_argument("--marker", type=float, default=0.03, help="ChArUco marker side")
-    ci.add_argument("--dictionary", default="DICT_4X4_50", help="ArUco dictionary name")
+    _add_board_args(ci)
     ci.add_argument("--fix-aspect", action="store_true", help="fx = fy (as OpenCV's sample calibration)")
     ci.add_argument("--out", required=True, help="OpenCV FileStorage YAML")
     ci.set_defaults(func=cmd_calibrate_intrinsics)
     cg = csub.add_parser("ground", help="T_world_cam from one photo of the board lying on the table")
     cg.add_argument("photo")
     cg.add_argument("--camera", required=True, help="YAML from 'calibrate intrinsics'")
-    cg.add_argument("--board", default="9x6")
-    cg.add_argument("--square", type=float, default=0.025)
-    cg.add_argument("--charuco", action="store_true")
-    cg.add_argument("--marker", type=float, default=0.03)
-    cg.add_argument("--dictionary", default="DICT_4X4_50")
+    _add_board_args(cg)
     cg.add_argument("--out", required=True)
     cg.set_defaults(func=cmd_calibrate_ground)
 
