@@ -147,3 +147,34 @@ def test_prepare_writes_a_folder_dataset_the_loader_reads(tmp_path):
     assert recs[0]["crop_box"] == [40, 0, 240, 240] and "gain" in recs[0]["color_mapping"]
     with pytest.raises(ValueError, match="normalize=manual needs a gain"):
         prepare_photos([tmp_path / "p.png"], tmp_path / "o2", normalize="manual")
+
+
+SAMPLES = __import__("pathlib").Path(__file__).resolve().parents[1] / "realdata" / "samples"
+
+
+def test_prepare_runs_on_the_shipped_real_photos(tmp_path):
+    """No ground truth: the path runs end to end, outputs are finite, and the measured table colour
+    lands on the synthetic ground colour (150/255) within 0.03."""
+    from prismonet.data.dataset import SceneDataset
+    from realdata.pipeline import prepare_photos
+
+    photos = [SAMPLES / n for n in ("blox.jpg", "stuff.jpg", "smarties.png")]
+    recs = prepare_photos(photos, tmp_path / "out")
+    ds = SceneDataset(tmp_path / "out")
+    b = ds.batch(range(len(ds)))
+    assert len(ds) == 3 and torch.isfinite(b.rgb).all() and torch.isfinite(b.K).all()
+    for i in range(3):
+        table = estimate_table_color(b.rgb[i].permute(1, 2, 0).numpy())
+        assert np.abs(table - 150 / 255).max() < 0.03, (recs[i]["photo"], table)
+
+
+def test_calibration_from_another_resolution_is_refused(tmp_path):
+    from calibration.board import Chessboard
+    from calibration.intrinsics import calibrate_folder
+    from calibration.storage import save_calibration
+    from realdata.pipeline import prepare_photos
+
+    cal_photos = sorted((SAMPLES.parent.parent / "calibration" / "samples" / "opencv_chessboard").glob("left0*.jpg"))
+    save_calibration(calibrate_folder(cal_photos, Chessboard(9, 6, 0.025)), tmp_path / "cam.yml")  # 640x480
+    with pytest.raises(ValueError, match=r"is 256x256 but the calibration is for 640x480"):
+        prepare_photos([SAMPLES / "blox.jpg"], tmp_path / "out", calibration=tmp_path / "cam.yml")
