@@ -89,6 +89,16 @@ def cmd_data_to_folder(args) -> int:
     return 0
 
 
+def cmd_data_subset(args) -> int:
+    from prismonet.data.packed import write_subset
+
+    if args.count <= 0:
+        raise ValueError(f"--count must be positive, got {args.count}")
+    write_subset(Path(args.dataset), args.split, range(args.count), Path(args.out))
+    print(f"wrote the first {args.count} {args.split} scenes of {args.dataset} to {args.out}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     import shutil
 
@@ -321,16 +331,16 @@ def cmd_real_prepare(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    import json
-
     import torch
 
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
-    from prismonet.model.io import load_model
+    from prismonet.model.io import load_model, prior_fingerprint
+    from prismonet.scene import LatentScene
     from prismonet.viz.decomposition import decomposition_figure
 
     model, info = load_model(args.checkpoint, num_slots=args.objects)
+    fp = prior_fingerprint(model.prior)
     ds = SceneDataset(args.data, split=args.split)
     H, W = ds.arrays["rgb"].shape[1:3]
     if (H, W) != (model.cfg.image_size, model.cfg.image_size):
@@ -348,14 +358,24 @@ def cmd_reconstruct(args) -> int:
             for j, i in enumerate(idx):
                 name = ds.names[i]
                 fig = decomposition_figure(b.rgb, out, j, out_dir / f"{name}.png", b.depth if has_depth else None)
-                p = out.latents.params
-                scene = {"objects": [{"position": p.position[j, k].tolist(), "cos_sin": p.cos_sin[j, k].tolist(),
-                                      "scale": float(p.scale[j, k]), "z_sh": p.z_sh[j, k].tolist(), "z_tex": p.z_tex[j, k].tolist()}
-                                     for k in range(p.scale.shape[1])],
-                         "bg_color": out.latents.bg_color[j].tolist()}
-                (out_dir / f"{name}.json").write_text(json.dumps(scene, indent=1))
+                LatentScene.from_output(out, b, j, fp).save(out_dir / f"{name}.json")
                 print(f"  {fig}")
     print(f"wrote {n} figures and latent scenes to {out_dir}")
+    return 0
+
+
+def cmd_real_reconstruct(args) -> int:
+    from realdata.reconstruct import reconstruct_photos
+
+    box = tuple(int(v) for v in args.box.split(",")) if args.box else None
+    if box is not None and len(box) != 4:
+        raise ValueError(f"--box: expected x0,y0,width,height, got {args.box!r}")
+    gain = tuple(float(v) for v in args.gain.split(",")) if args.gain else None
+    recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
+                              args.min_pixels, args.format, progress=not args.quiet)
+    for r in recs:
+        print(f"  {r['photo']}: {r['objects_found']} objects found; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
+    print(f"wrote figures, latent scenes, meshes and summary.json to {args.out}")
     return 0
 
 
@@ -414,6 +434,13 @@ def build_parser() -> argparse.ArgumentParser:
     to_folder.add_argument("--count", type=int)
     to_folder.set_defaults(func=cmd_data_to_folder)
 
+    subset = dsub.add_parser("subset", help="copy some scenes of a packed split into a new packed dataset")
+    subset.add_argument("dataset")
+    subset.add_argument("out")
+    subset.add_argument("--split", default="test")
+    subset.add_argument("--count", type=int, default=16, help="the first N scenes")
+    subset.set_defaults(func=cmd_data_subset)
+
     tr = sub.add_parser("train", help="train the scene model from RGB-D (resumable; works under torchrun)")
     tr.add_argument("config", help="JSON file of TrainConfig fields (e.g. configs/clevr3.json)")
     tr.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
@@ -466,6 +493,10 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("--out", required=True)
     me.set_defaults(func=cmd_shapes_mesh)
 
+    from prismonet.scene.cli import add_parsers as add_scene_parsers
+
+    add_scene_parsers(sub)
+
     cal = sub.add_parser("calibrate", help="camera calibration with OpenCV (intrinsics, ground plane)")
     csub = cal.add_subparsers(dest="calibrate_command", required=True)
     ci = csub.add_parser("intrinsics", help="intrinsics and distortion from chessboard photos")
@@ -481,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     cg.add_argument("--out", required=True)
     cg.set_defaults(func=cmd_calibrate_ground)
 
-    real = sub.add_parser("real", help="real photos: prepare them for the model")
+    real = sub.add_parser("real", help="real photos: prepare them for the model, and reconstruct them")
     rsub = real.add_subparsers(dest="real_command", required=True)
     rp = rsub.add_parser("prepare", help="undistort, crop, resize and colour-normalise photos")
     rp.add_argument("photos", nargs="+")
@@ -492,6 +523,19 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
     rp.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
     rp.set_defaults(func=cmd_real_prepare)
+    rr = rsub.add_parser("reconstruct", help="prepare photos and decompose them: figure, latent scene, mesh and object count each")
+    rr.add_argument("photos", nargs="+")
+    rr.add_argument("--out", required=True)
+    rr.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
+    rr.add_argument("--camera", help="calibration YAML; with a ground pose it replaces the assumed training camera")
+    rr.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
+    rr.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
+    rr.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
+    rr.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
+    rr.add_argument("--min-pixels", type=int, default=25, help="visible pixels for an object to count as found")
+    rr.add_argument("--format", default="ply", choices=["ply", "obj", "glb"], help="mesh format")
+    rr.add_argument("--quiet", action="store_true")
+    rr.set_defaults(func=cmd_real_reconstruct)
 
     bench = sub.add_parser("bench", help="benchmarks (timings to record in BENCHMARKS.md)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)

@@ -36,6 +36,10 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         raise ValueError(f"normalize: expected auto, none or manual, got {normalize!r}")
     if normalize == "manual" and gain is None:
         raise ValueError("normalize=manual needs a gain (r,g,b)")
+    stems = [Path(p).stem for p in photos]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise ValueError(f"photos with the same file name would overwrite each other: {', '.join(dup)}")
     out = Path(out)
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "annotations").mkdir(exist_ok=True)

@@ -1,1 +1,25 @@
-"""Files that ship with the package: the pre-trained Clevr shape prior (and later checkpoints)."""
+"""Files that ship with the package: the pre-trained Clevr shape prior, the trained 3-object scene
+model (with its training config and log), and a few test scenes."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+SHIPPED_MODEL = "clevr3_model"
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json``."""
+SHIPPED_SAMPLES = "samples/clevr3"
+"""16 scenes of the 3-object test split (packed, split ``test``)."""
+
+
+def asset_path(name: str) -> Path:
+    """The path of a shipped file or folder inside the installed package."""
+    return Path(str(resources.files("prismonet.assets").joinpath(name)))
+
+
+def shipped_model() -> Path:
+    return asset_path(SHIPPED_MODEL)
+
+
+def shipped_samples() -> Path:
+    return asset_path(SHIPPED_SAMPLES)

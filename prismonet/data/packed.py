@@ -105,3 +105,21 @@ def open_split(root: Path, split: str, verify: bool = False) -> dict[str, np.nda
     if missing:
         raise DatasetError(f"{root}/{split}: meta.json lists no {sorted(missing)}")
     return arrays
+
+
+def write_subset(src: Path, split: str, indices, dst: Path) -> dict:
+    """Copy scenes ``indices`` of ``src``'s ``split`` into a new packed dataset ``dst`` holding only
+    that split (same generator settings in ``meta.json``, plus where the scenes came from)."""
+    src, dst = Path(src), Path(dst)
+    meta = read_meta(src)
+    arrays = open_split(src, split)
+    idx = np.asarray(list(indices), dtype=np.int64)
+    if idx.size == 0 or idx.min() < 0 or idx.max() >= len(arrays["rgb"]):
+        raise DatasetError(f"{src}/{split}: scene indices must lie in [0, {len(arrays['rgb'])}), got {idx.tolist()[:5]}...")
+    if (dst / "meta.json").exists():
+        raise DatasetError(f"{dst}: already holds a dataset")
+    entries = write_split(dst / split, {k: np.asarray(v[idx]) for k, v in arrays.items()})
+    out = {**meta, "counts": {split: int(idx.size)}, "splits": {split: entries},
+           "subset_of": {"path": str(src), "split": split, "indices": idx.tolist()}}
+    write_meta(dst, out)
+    return out

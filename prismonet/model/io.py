@@ -38,12 +38,14 @@ def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
 
 
 def load_model(path: str | Path, num_slots: int | None = None):
-    """Load ``(model, info)`` from a run folder, a ``.safetensors``/``.json`` path, or a stem."""
+    """Load ``(model, info)`` from a run folder, a ``.safetensors``/``.json`` path, or a stem;
+    ``"shipped"`` is the trained 3-object model that ships with the package."""
+    from prismonet.assets import shipped_model
     from prismonet.checkpoint import load_checkpoint
     from prismonet.config import _build
     from prismonet.model.prismonet import PriSMONet
 
-    p = Path(path)
+    p = shipped_model() if str(path) == "shipped" else Path(path)
     stem = p / "model" if p.is_dir() else (p.with_suffix("") if p.suffix in (".safetensors", ".json") else p)
     config = stem.with_suffix(".json")
     if not config.is_file():
@@ -74,3 +76,19 @@ def load_model(path: str | Path, num_slots: int | None = None):
     model.load_state_dict(tensors)
     model.eval()
     return model, info
+
+
+def training_camera(model, info: dict):
+    """``(Camera, ground_z)`` the model was trained with: from the checkpoint's record, or for a
+    checkpoint without one, the default CLEVR camera at the model's image size."""
+    import torch
+
+    from prismonet.geometry.camera import Camera
+
+    s = model.cfg.image_size
+    if "camera_K" in info and "camera_T_world_cam" in info:
+        cam = Camera(torch.tensor(info["camera_K"], dtype=torch.float32), torch.tensor(info["camera_T_world_cam"], dtype=torch.float32), s, s)
+        return cam, float(info.get("ground_z", 0.0))
+    from prismonet.data.clevr import ClevrConfig, clevr_camera
+
+    return clevr_camera(ClevrConfig(image_size=s)), 0.0

@@ -253,8 +253,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             log.close()
     summary = {"steps": step, "elapsed_s": round(elapsed, 1), "nonfinite": nonfinite, "last": last, "world_size": world}
     if rank == 0 and step >= cfg.steps:
-        K0 = ds.batch([0]).K[0].tolist()
-        save_model(model, run / "model", {"train": cfg_json, "summary": summary, "camera_K": K0})
+        b0 = ds.batch([0])
+        save_model(model, run / "model", {"train": cfg_json, "summary": summary, "camera_K": b0.K[0].tolist(),
+                                          "camera_T_world_cam": b0.T_world_cam[0].tolist(), "ground_z": float(b0.ground_z[0])})
     if world > 1:
         torch.distributed.barrier()
     return summary

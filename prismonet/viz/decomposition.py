@@ -13,12 +13,13 @@ def _u8(img: torch.Tensor) -> np.ndarray:
 
 
 def decomposition_figure(image: torch.Tensor, out, index: int, path: str | Path, depth_gt: torch.Tensor | None = None,
-                         upscale: int = 3) -> Path:
-    """Write one scene's figure as PNG. Top row: input, reconstruction, [target depth,] rendered
-    depth, instances. Bottom row: each slot rendered alone over the background.
+                         upscale: int = 3, photo: np.ndarray | None = None) -> Path:
+    """Write one scene's figure as PNG. Top row: [photo,] input, reconstruction, [target depth,]
+    rendered depth, instances. Bottom row: each slot rendered alone over the background.
 
     Args:
         image: ``(B, 3, H, W)`` the model's input; ``out``: its ``ModelOutput``; ``index``: which scene.
+        photo: optional ``(h, w, 3)`` uint8 RGB original photo, shown first (fitted into a tile).
     """
     import cv2
 
@@ -32,6 +33,13 @@ def decomposition_figure(image: torch.Tensor, out, index: int, path: str | Path,
         g = depth_gt[i, 0].numpy()
         lo, hi = float(g[g > 0].min()), float(g.max())
     top = [_u8(image[i]), _u8(out.composite.image[i])]
+    if photo is not None:
+        H, W = image.shape[-2:]
+        f = min(H / photo.shape[0], W / photo.shape[1])
+        small = cv2.resize(photo, (max(1, round(photo.shape[1] * f)), max(1, round(photo.shape[0] * f))), interpolation=cv2.INTER_AREA)
+        tile = np.full((H, W, 3), 255, np.uint8)
+        tile[: small.shape[0], : small.shape[1]] = small
+        top.insert(0, tile)
     if depth_gt is not None:
         top.append(colorize_depth(depth_gt[i, 0].numpy(), lo, hi))
     top += [colorize_depth(d, lo, hi), colorize_instances(out.composite.instance[i].numpy())]

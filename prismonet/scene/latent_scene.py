@@ -1,0 +1,175 @@
+"""The latent scene: one inferred scene as data, saved and reloaded as JSON.
+
+A scene is what the model's encoder infers from one image: per object a pose (position, yaw as
+(cos, sin), scale), a shape latent and a texture latent; the background colour; and the camera and
+ground plane it was seen with. Rendering it needs the model's frozen shape prior Phi and texture
+field Psi, so the file records the fingerprint of the prior it belongs to and refuses another.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from prismonet.geometry.camera import Camera
+from prismonet.render import RenderSettings, SceneParams, composite, render_objects
+from prismonet.render.background import plane_depth
+from prismonet.render.composite import Composite
+
+SCENE_FORMAT = "prismonet-latent-scene"
+SCENE_VERSION = 1
+
+
+class LatentSceneError(ValueError):
+    """A latent-scene file or edit that is malformed or does not fit the model."""
+
+
+@dataclass
+class LatentScene:
+    """One scene of K objects (tensors without a batch axis).
+
+    Attributes:
+        z_sh: ``(K, D_sh)``; z_tex: ``(K, D_tex)``; position: ``(K, 3)`` world; cos_sin: ``(K, 2)``;
+        scale: ``(K,)``; bg_color: ``(3,)`` in [0, 1]; camera: the camera it was inferred from;
+        ground_z: height of the ground plane; prior_fingerprint: the shape prior it belongs to.
+    """
+
+    z_sh: torch.Tensor
+    z_tex: torch.Tensor
+    position: torch.Tensor
+    cos_sin: torch.Tensor
+    scale: torch.Tensor
+    bg_color: torch.Tensor
+    camera: Camera
+    ground_z: float = 0.0
+    prior_fingerprint: str = ""
+
+    def __post_init__(self) -> None:
+        K = self.z_sh.shape[0] if self.z_sh.dim() == 2 else -1
+        shapes = {"z_sh": (K, self.z_sh.shape[-1]), "z_tex": (K, self.z_tex.shape[-1]), "position": (K, 3),
+                  "cos_sin": (K, 2), "scale": (K,), "bg_color": (3,)}
+        for name, shape in shapes.items():
+            t = getattr(self, name)
+            if t.dim() != len(shape) or tuple(t.shape) != shape:
+                raise LatentSceneError(f"{name}: expected shape {shape} (K = {K} objects), got {tuple(t.shape)}")
+            if not torch.isfinite(t).all():
+                raise LatentSceneError(f"{name}: contains non-finite values")
+
+    @property
+    def num_objects(self) -> int:
+        return self.z_sh.shape[0]
+
+    @property
+    def yaw(self) -> torch.Tensor:
+        """``(K,)`` yaw angles in radians."""
+        return torch.atan2(self.cos_sin[:, 1], self.cos_sin[:, 0])
+
+    def params(self) -> SceneParams:
+        """The scene as the renderer's ``SceneParams`` (batch of one)."""
+        return SceneParams(self.z_sh[None], self.z_tex[None], self.position[None], self.cos_sin[None], self.scale[None])
+
+    def T_world_obj(self) -> torch.Tensor:
+        """``(K, 4, 4)`` object-to-world similarity transforms."""
+        return self.params().T_world_obj()[0]
+
+    def select(self, keep) -> "LatentScene":
+        """The scene with only objects ``keep`` (indices, in that order)."""
+        idx = torch.as_tensor(list(keep), dtype=torch.long)
+        return replace(self, z_sh=self.z_sh[idx], z_tex=self.z_tex[idx], position=self.position[idx],
+                       cos_sin=self.cos_sin[idx], scale=self.scale[idx])
+
+    # -- from the model -------------------------------------------------------------------
+    @staticmethod
+    def from_output(out, batch, index: int, prior_fingerprint: str = "") -> "LatentScene":
+        """Scene ``index`` of a model output ``out`` for the input ``batch`` (a ``SceneBatch``)."""
+        p, i = out.latents.params, index
+        H, W = batch.rgb.shape[-2:]
+        cam = Camera(batch.K[i].detach().float(), batch.T_world_cam[i].detach().float(), int(H), int(W))
+        d = lambda t: t[i].detach().float().clone()
+        return LatentScene(d(p.z_sh), d(p.z_tex), d(p.position), d(p.cos_sin), d(p.scale), d(out.latents.bg_color),
+                           cam, float(batch.ground_z[i]), prior_fingerprint)
+
+    # -- rendering --------------------------------------------------------------------------
+    def render(self, model, camera: Camera | None = None, settings: RenderSettings | None = None):
+        """Render with the model's Phi and Psi from ``camera`` (default: the scene's own).
+
+        Returns ``(Composite, obj_depth (1, K, H, W), obj_mask, obj_color (1, K, 3, H, W), bg_depth)``:
+        the same pipeline as the model's forward pass, so the scene's own camera reproduces the
+        model's render exactly.
+        """
+        self.check_model(model)
+        cam = self.camera if camera is None else camera
+        settings = model.render_settings() if settings is None else settings
+        K, T = cam.K[None].to(self.z_sh.dtype), cam.T_world_cam[None].to(self.z_sh.dtype)
+        bg_depth = plane_depth(K, T, cam.height, cam.width, torch.tensor([self.ground_z], dtype=K.dtype), settings.far_depth)
+        if self.num_objects == 0:
+            B, H, W = 1, cam.height, cam.width
+            obj = (torch.full((B, 0, H, W), settings.far_depth), torch.zeros(B, 0, H, W, dtype=torch.bool), torch.zeros(B, 0, 3, H, W))
+        else:
+            r = render_objects(model.sdf_fn, model.color_fn, self.params(), K, T, cam.height, cam.width, settings)
+            obj = (r.depth, r.mask, r.color)
+        comp: Composite = composite(*obj, self.bg_color[None], bg_depth)
+        return comp, *obj, bg_depth
+
+    def check_model(self, model) -> None:
+        from prismonet.model.io import prior_fingerprint
+
+        if self.prior_fingerprint and self.prior_fingerprint != prior_fingerprint(model.prior):
+            raise LatentSceneError(f"this scene was inferred with shape prior {self.prior_fingerprint}, "
+                                   f"the model has {prior_fingerprint(model.prior)}")
+        if self.z_sh.shape[1] != model.sh_dim or self.z_tex.shape[1] != model.cfg.tex_dim:
+            raise LatentSceneError(f"latent sizes ({self.z_sh.shape[1]}, {self.z_tex.shape[1]}) do not fit the model "
+                                   f"({model.sh_dim}, {model.cfg.tex_dim})")
+
+    # -- files ------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "format": SCENE_FORMAT, "version": SCENE_VERSION, "prior_fingerprint": self.prior_fingerprint,
+            "camera": self.camera.to_dict(), "ground_z": self.ground_z, "bg_color": self.bg_color.tolist(),
+            "objects": [{"position": self.position[k].tolist(), "yaw_deg": math.degrees(float(self.yaw[k])),
+                         "cos_sin": self.cos_sin[k].tolist(), "scale": float(self.scale[k]),
+                         "z_sh": self.z_sh[k].tolist(), "z_tex": self.z_tex[k].tolist()} for k in range(self.num_objects)],
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the scene as JSON (atomically)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=1))
+        tmp.replace(path)
+        return path
+
+    @staticmethod
+    def from_dict(d: dict, source: str = "scene") -> "LatentScene":
+        if d.get("format") != SCENE_FORMAT:
+            raise LatentSceneError(f"{source}: format is {d.get('format')!r}, expected {SCENE_FORMAT!r}")
+        if d.get("version") != SCENE_VERSION:
+            raise LatentSceneError(f"{source}: version {d.get('version')} is not supported (expected {SCENE_VERSION})")
+        try:
+            objs = d["objects"]
+            t = lambda key: torch.tensor([o[key] for o in objs], dtype=torch.float32)
+            if not objs:
+                raise LatentSceneError(f"{source}: a scene file needs at least one object")
+            return LatentScene(t("z_sh"), t("z_tex"), t("position"), t("cos_sin"), t("scale"),
+                               torch.tensor(d["bg_color"], dtype=torch.float32), Camera.from_dict(d["camera"]),
+                               float(d.get("ground_z", 0.0)), str(d.get("prior_fingerprint", "")))
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, LatentSceneError):
+                raise
+            raise LatentSceneError(f"{source}: malformed latent scene ({type(e).__name__}: {e})") from None
+
+    @staticmethod
+    def load(path: str | Path) -> "LatentScene":
+        path = Path(path)
+        if not path.is_file():
+            raise LatentSceneError(f"{path}: no such latent-scene file")
+        try:
+            d = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise LatentSceneError(f"{path}: not JSON ({e})") from None
+        return LatentScene.from_dict(d, str(path))
