@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,6 +15,10 @@ SUBPIX_WINDOW = (11, 11)
 SUBPIX_CRITERIA = (3, 30, 1e-3)  # cv2.TERM_CRITERIA_EPS + MAX_ITER, 30 iterations, 1e-3 px
 MIN_VIEWS = 3
 """Fewer detected boards than this cannot constrain the intrinsics."""
+
+
+class BoardNotFoundWarning(UserWarning):
+    """A calibration photo in which the board was not found (the photo is skipped)."""
 
 
 class CalibrationError(ValueError):
@@ -60,7 +66,9 @@ def calibrate_images(images: list[np.ndarray], board, names: list[str] | None = 
             raise CalibrationError(f"{name}: is {gray.shape[1]}x{gray.shape[0]}, other photos are {size[0]}x{size[1]}")
         found = board.detect(gray)
         per_image.append({"image": name, "found": found is not None})
-        if found is not None:
+        if found is None:
+            warnings.warn(f"{name}: the {label} was not found; skipping this photo", BoardNotFoundWarning, stacklevel=2)
+        else:
             obj.append(found[0])
             img.append(found[1])
     if len(obj) < MIN_VIEWS:

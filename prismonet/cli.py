@@ -100,22 +100,19 @@ def cmd_data_subset(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    import shutil
+    import time
 
-    from prismonet.data.clevr import ClevrConfig
-    from prismonet.data.dataset import SceneDataset
-    from prismonet.data.generate import generate_clevr
-    from prismonet.viz.contact_sheet import contact_sheet
+    from prismonet.demo import format_demo_table, run_demo
 
+    t0 = time.perf_counter()
+    result = run_demo(args.out, args.scenes, args.model, args.data, args.refine, progress=not args.quiet)
+    print(format_demo_table(result))
     out = Path(args.out)
-    data = out / "data"
-    if (data / "meta.json").is_file():
-        shutil.rmtree(data)  # the demo's own earlier output
-    generate_clevr(data, ClevrConfig(num_objects=args.objects), split=(args.scenes, 0, 0), seed=args.seed, workers=1)
-    ds = SceneDataset(data, split="train")
-    sheet = contact_sheet(ds.numpy(range(len(ds))), out / "contact_sheet.png")
-    print(f"dataset:       {data}  ({len(ds)} scenes, {args.objects} objects each)")
-    print(f"contact sheet: {sheet}  (RGB | depth | instance masks)")
+    print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "
+          f"in {time.perf_counter() - t0:.1f} s")
+    print(f"figures:       {out}/scene_*.png  (input | reconstruction | depth target | depth | instances; each object alone)")
+    print(f"latent scenes: {out}/scene_*.json  (prismonet export / edit / views take these)")
+    print(f"metrics:       {out / 'metrics.json'}")
     return 0
 
 
@@ -241,15 +238,19 @@ def cmd_evaluate(args) -> int:
 
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_table
-    from prismonet.model.io import load_model
+    from prismonet.model.io import load_model, training_loss_config
+    from prismonet.model.refine import RefineConfig
 
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds)
-    results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet)
+    refine_cfg = RefineConfig(args.refine, args.refine_lr) if args.refine else None
+    results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
+                             refine_cfg=refine_cfg, loss_cfg=training_loss_config(info))
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
-    print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects)")
+    print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects, "
+          f"{results['refine_steps']} refinement steps, {1000 * results['seconds_per_scene']:.1f} ms per scene)")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
         print(f"wrote {args.json}")
@@ -391,11 +392,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="the main job on embedded defaults")
+    demo = sub.add_parser("demo", help="the main job: the shipped model decomposes the shipped test scenes")
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
-    demo.add_argument("--scenes", type=int, default=8)
-    demo.add_argument("--objects", type=int, default=3)
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--scenes", type=int, default=8, help="how many of the 16 shipped scenes")
+    demo.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
+    demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes")
+    demo.add_argument("--refine", type=int, default=0, metavar="K", help="test-time refinement steps per scene")
+    demo.add_argument("--quiet", action="store_true")
     demo.set_defaults(func=cmd_demo)
 
     data = sub.add_parser("data", help="datasets: generate, inspect, convert")
@@ -456,6 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--batch", type=int, default=16)
     ev.add_argument("--limit", type=int, help="evaluate only the first N scenes")
     ev.add_argument("--json", help="also write the results here")
+    ev.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K gradient steps per scene (beyond the paper)")
+    ev.add_argument("--refine-lr", type=float, default=0.01)
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 

@@ -94,6 +94,16 @@ def test_filestorage_round_trip_and_opencv_readability(tmp_path):
     assert (cam.height, cam.width) == (480, 640) and abs(float(cam.K[0, 0]) - cal.K[0, 0]) < 1e-3
 
 
+def test_photo_without_board_is_skipped_with_a_warning():
+    from calibration.intrinsics import BoardNotFoundWarning
+
+    imgs, _ = synthetic_views(4)
+    blank = np.full_like(imgs[0], 128)
+    with pytest.warns(BoardNotFoundWarning, match="blank.png: the 9x6 board was not found"):
+        cal = calibrate_images(imgs + [blank], BOARD, names=[f"v{i}.png" for i in range(4)] + ["blank.png"])
+    assert [p["found"] for p in cal.per_image] == [True] * 4 + [False]
+
+
 def test_bad_inputs(tmp_path):
     with pytest.raises(CalibrationError, match="no photos given"):
         calibrate_folder([], BOARD)

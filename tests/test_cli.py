@@ -6,13 +6,18 @@ import pytest
 from prismonet.cli import main
 
 
-def test_demo_writes_dataset_and_contact_sheet(tmp_path, capsys):
+def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
+    import json
+
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--scenes", "3"]) == 0
-    sheet = cv2.imread(str(out / "contact_sheet.png"))
-    assert sheet is not None and sheet.shape[0] > 128 and sheet.shape[1] > 3 * 128
-    assert "contact sheet" in capsys.readouterr().out
-    assert main(["demo", "--out", str(out), "--scenes", "2"]) == 0  # re-runnable over its own output
+    assert main(["demo", "--out", str(out), "--scenes", "2", "--quiet"]) == 0
+    fig = cv2.imread(str(out / "scene_001.png"))
+    assert fig is not None and fig.shape[0] > 2 * 64 and fig.shape[1] > 4 * 64
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert len(metrics["scenes"]) == 2 and 0 <= metrics["mean"]["AP0.5"] <= 1 and metrics["mean"]["PSNR"] > 10
+    printed = capsys.readouterr().out
+    assert "| **mean** |" in printed and str(out / "metrics.json") in printed
+    assert main(["demo", "--out", str(out), "--scenes", "1", "--quiet"]) == 0  # re-runnable over its own output
 
 
 def test_data_commands(tmp_path, capsys):

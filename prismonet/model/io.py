@@ -92,3 +92,14 @@ def training_camera(model, info: dict):
     from prismonet.data.clevr import ClevrConfig, clevr_camera
 
     return clevr_camera(ClevrConfig(image_size=s)), 0.0
+
+
+def training_loss_config(info: dict):
+    """The ``LossConfig`` a checkpoint was trained with (defaults for what it does not record)."""
+    from prismonet.config import _build
+    from prismonet.model.losses import LossConfig
+
+    try:
+        return _build(LossConfig, info.get("train", {}).get("loss", {}), "loss.")
+    except (TypeError, ValueError):
+        return LossConfig()
