@@ -316,13 +316,24 @@ def cmd_calibrate_ground(args) -> int:
     return 0
 
 
+def _box_and_gain(args):
+    """``--box x0,y0,w,h`` and ``--gain r,g,b`` of the real-photo commands."""
+    try:
+        box = tuple(int(v) for v in args.box.split(",")) if args.box else None
+        gain = tuple(float(v) for v in args.gain.split(",")) if args.gain else None
+    except ValueError:
+        raise ValueError(f"--box takes four integers and --gain three numbers, got {args.box!r} and {args.gain!r}") from None
+    if box is not None and len(box) != 4:
+        raise ValueError(f"--box: expected x0,y0,width,height, got {args.box!r}")
+    if gain is not None and len(gain) != 3:
+        raise ValueError(f"--gain: expected r,g,b, got {args.gain!r}")
+    return box, gain
+
+
 def cmd_real_prepare(args) -> int:
     from realdata.pipeline import prepare_photos
 
-    box = tuple(int(v) for v in args.box.split(",")) if args.box else None
-    if box is not None and len(box) != 4:
-        raise ValueError(f"--box: expected x0,y0,width,height, got {args.box!r}")
-    gain = tuple(float(v) for v in args.gain.split(",")) if args.gain else None
+    box, gain = _box_and_gain(args)
     recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain)
     for r in recs:
         g = r["color_mapping"]["gain"]
@@ -368,10 +379,7 @@ def cmd_reconstruct(args) -> int:
 def cmd_real_reconstruct(args) -> int:
     from realdata.reconstruct import reconstruct_photos
 
-    box = tuple(int(v) for v in args.box.split(",")) if args.box else None
-    if box is not None and len(box) != 4:
-        raise ValueError(f"--box: expected x0,y0,width,height, got {args.box!r}")
-    gain = tuple(float(v) for v in args.gain.split(",")) if args.gain else None
+    box, gain = _box_and_gain(args)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, progress=not args.quiet)
     for r in recs:

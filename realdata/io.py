@@ -11,6 +11,9 @@ class PhotoError(ValueError):
     """A photo that cannot be read or used."""
 
 
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+
+
 def load_photo(path: str | Path) -> np.ndarray:
     """``(H, W, 3)`` float32 RGB in [0, 1].
 
@@ -22,6 +25,10 @@ def load_photo(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise PhotoError(f"{path}: no such photo")
+    if path.suffix.lower() not in PHOTO_SUFFIXES:
+        raise PhotoError(f"{path}: unsupported format {path.suffix or '(no extension)'}; expected one of {', '.join(PHOTO_SUFFIXES)}")
+    if path.stat().st_size == 0:
+        raise PhotoError(f"{path}: empty file")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
     if img is None:
         raise PhotoError(f"{path}: cannot be read as an image")

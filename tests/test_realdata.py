@@ -29,6 +29,23 @@ def test_bit_depths_and_greyscale(tmp_path):
         load_photo(tmp_path / "bad.png")
     with pytest.raises(PhotoError, match="no such photo"):
         load_photo(tmp_path / "none.png")
+    (tmp_path / "empty.jpg").write_bytes(b"")
+    with pytest.raises(PhotoError, match="empty file"):
+        load_photo(tmp_path / "empty.jpg")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(PhotoError, match="unsupported format .txt"):
+        load_photo(tmp_path / "notes.txt")
+    cv2.imwrite(str(tmp_path / "ok.png"), rgb)
+    (tmp_path / "cut.png").write_bytes((tmp_path / "ok.png").read_bytes()[:40])  # truncated
+    with pytest.raises(PhotoError, match="cannot be read"):
+        load_photo(tmp_path / "cut.png")
+
+
+def test_crop_box_outside_the_photo_is_refused():
+    cam = Camera(intrinsics_matrix(10.0, 10.0, 4.5, 4.5), torch.eye(4), 10, 10)
+    for box in [(5, 5, 10, 10), (-1, 0, 4, 4), (0, 0, 0, 4)]:
+        with pytest.raises(PhotoError, match="does not fit in the 10x10 photo"):
+            crop(np.zeros((10, 10, 3), np.float32), cam, box)
 
 
 def test_exif_orientation_is_applied(tmp_path):

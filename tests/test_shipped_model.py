@@ -1,0 +1,43 @@
+"""The shipped 3-object model on the 16 shipped test scenes, against thresholds set from its
+measured figures (EVALUATION.md) with a margin.
+
+Measured with ``python3 -m prismonet evaluate shipped prismonet/assets/samples/clevr3``: see
+MEASURED. The thresholds leave a margin of 0.05 AP and 10 % depth RMSE for float differences
+between machines; a real regression (a broken renderer, encoder or checkpoint) falls far below.
+"""
+
+import pytest
+
+from prismonet.assets import shipped_samples
+from prismonet.data.dataset import SceneDataset
+from prismonet.evaluation.evaluate import check_compatible, evaluate_model
+from prismonet.model.io import load_model
+
+MEASURED = {"AP0.5": 0.646, "depth_RMSE": 0.255}
+AP_MARGIN = 0.05
+DEPTH_MARGIN = 1.10
+
+
+@pytest.fixture(scope="module")
+def results():
+    model, info = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    check_compatible(model, info, ds)
+    return evaluate_model(model, ds, batch_size=16, progress=False)
+
+
+def test_shipped_model_detects_objects(results):
+    assert results["scenes"] == 16
+    assert results["AP0.5"] >= MEASURED["AP0.5"] - AP_MARGIN
+
+
+def test_shipped_model_depth(results):
+    assert results["depth_RMSE"] <= MEASURED["depth_RMSE"] * DEPTH_MARGIN
+
+
+def test_shipped_model_files_travel_with_config_and_log():
+    from prismonet.assets import asset_path, shipped_model
+
+    stem = shipped_model()
+    assert stem.with_suffix(".safetensors").is_file() and stem.with_suffix(".json").is_file()
+    assert asset_path("clevr3_train_log.jsonl").is_file() and asset_path("clevr3_train_config.json").is_file()
