@@ -15,7 +15,7 @@ import torch
 
 from prismonet.model.losses import LossConfig, compute_losses
 from prismonet.model.prismonet import ModelOutput, SceneLatents
-from prismonet.render import SceneParams, composite, render_objects
+from prismonet.render import RenderSettings, SceneParams, composite, render_objects
 from prismonet.render.background import plane_depth
 
 FINAL_STEP = 10**9
@@ -35,9 +35,9 @@ class RefineConfig:
 
 
 def render_latents(model, params: SceneParams, bg_color: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
-                   ground_z: torch.Tensor, height: int, width: int) -> ModelOutput:
-    """Render given latents with the model's renderer into a ``ModelOutput`` (as its forward pass)."""
-    settings = model.render_settings()
+                   ground_z: torch.Tensor, height: int, width: int, settings: RenderSettings | None = None) -> ModelOutput:
+    """Render given latents with the model's renderer (or ``settings``) into a ``ModelOutput``, as its forward pass does."""
+    settings = model.render_settings() if settings is None else settings
     obj = render_objects(model.sdf_fn, model.color_fn, params, K, T_world_cam, height, width, settings)
     bg_depth = plane_depth(K, T_world_cam, height, width, ground_z, settings.far_depth)
     comp = composite(obj.depth, obj.mask, obj.color, bg_color, bg_depth)

@@ -16,9 +16,7 @@ from pathlib import Path
 import torch
 
 from prismonet.geometry.camera import Camera
-from prismonet.render import RenderSettings, SceneParams, composite, render_objects
-from prismonet.render.background import plane_depth
-from prismonet.render.composite import Composite
+from prismonet.render import RenderSettings, SceneParams
 
 SCENE_FORMAT = "prismonet-latent-scene"
 SCENE_VERSION = 1
@@ -101,19 +99,14 @@ class LatentScene:
         the same pipeline as the model's forward pass, so the scene's own camera reproduces the
         model's render exactly.
         """
+        from prismonet.model.refine import render_latents
+
         self.check_model(model)
         cam = self.camera if camera is None else camera
-        settings = model.render_settings() if settings is None else settings
-        K, T = cam.K[None].to(self.z_sh.dtype), cam.T_world_cam[None].to(self.z_sh.dtype)
-        bg_depth = plane_depth(K, T, cam.height, cam.width, torch.tensor([self.ground_z], dtype=K.dtype), settings.far_depth)
-        if self.num_objects == 0:
-            B, H, W = 1, cam.height, cam.width
-            obj = (torch.full((B, 0, H, W), settings.far_depth), torch.zeros(B, 0, H, W, dtype=torch.bool), torch.zeros(B, 0, 3, H, W))
-        else:
-            r = render_objects(model.sdf_fn, model.color_fn, self.params(), K, T, cam.height, cam.width, settings)
-            obj = (r.depth, r.mask, r.color)
-        comp: Composite = composite(*obj, self.bg_color[None], bg_depth)
-        return comp, *obj, bg_depth
+        dtype = self.z_sh.dtype
+        o = render_latents(model, self.params(), self.bg_color[None], cam.K[None].to(dtype), cam.T_world_cam[None].to(dtype),
+                           torch.tensor([self.ground_z], dtype=dtype), cam.height, cam.width, settings)
+        return o.composite, o.obj_depth, o.obj_mask, o.obj_color, o.bg_depth
 
     def check_model(self, model) -> None:
         from prismonet.model.io import prior_fingerprint
@@ -173,3 +166,4 @@ class LatentScene:
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise LatentSceneError(f"{path}: not JSON ({e})") from None
         return LatentScene.from_dict(d, str(path))
+
