@@ -224,3 +224,14 @@ def test_render_from_a_given_pose_sees_the_object(model, scene):
     cam = Camera(scene.camera.K, look_at(target + torch.tensor([0.0, -4.0, 3.0]), target), scene.camera.height, scene.camera.width)
     img, depth, inst = novel_view.render_view(model, scene, cam)
     assert inst[28:36, 28:36].eq(1).any()  # object 0 is at the image centre
+
+
+def test_wrong_shapes_are_named(scene):
+    from dataclasses import replace
+
+    with pytest.raises(LatentSceneError, match=r"position: expected shape \(3, 3\)"):
+        replace(scene, position=scene.position[:, :2])
+    with pytest.raises(LatentSceneError, match=r"scale: expected shape \(3,\)"):
+        replace(scene, scale=scene.scale[:2])
+    with pytest.raises(ValueError, match=r"rgb: expected shape \(3, 64, 64\)"):
+        export.point_cloud(torch.zeros(3, 32, 32), torch.ones(64, 64), scene.camera)

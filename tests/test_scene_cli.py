@@ -66,3 +66,31 @@ def test_views_orbit_and_pose(exported, tmp_path):
     assert len(list((tmp_path / "o").glob("view_*.png"))) == 3 and (tmp_path / "o" / "orbit.gif").is_file()
     assert main(["views", str(exported / "scene.json"), "--eye", "0,-6,5", "--size", "48", "--out", str(tmp_path / "p")]) == 0
     assert cv2.imread(str(tmp_path / "p" / "view.png")).shape == (48, 48, 3)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["demo", "--scenes", "0", "--out", "{tmp}/d"], "--scenes must be positive"),
+        (["export", "--out", "{tmp}/e"], "give either --scene FILE or --data DIR"),
+        (["export", "--data", "{samples}", "--index", "99", "--out", "{tmp}/e"], "--index"),
+        (["export", "--scene", "{tmp}/none.json", "--out", "{tmp}/e"], "no such latent-scene file"),
+        (["views", "{scene}", "--frames", "0", "--out", "{tmp}/v"], "frames must be positive"),
+        (["views", "{scene}", "--eye", "1,2", "--out", "{tmp}/v"], "--eye: expected 3 comma-separated numbers"),
+        (["edit", "{scene}", "--swap-shape", "0", "--out", "{tmp}/x.json"], "--swap-shape: expected two object indices"),
+        (["edit", "{scene}", "--add", "nofile", "--out", "{tmp}/x.json"], "--add: expected SCENE.json:OBJECT"),
+        (["real", "reconstruct", "x.jpg", "--box", "1,2,3", "--out", "{tmp}/r"], "--box: expected x0,y0,width,height"),
+        (["real", "reconstruct", "x.jpg", "--gain", "a,b,c", "--out", "{tmp}/r"], "--box takes four integers and --gain three numbers"),
+        (["data", "subset", "{samples}", "{tmp}/s", "--count", "0"], "--count must be positive"),
+    ],
+)
+def test_scene_command_errors_are_one_line(exported, tmp_path, capsys, argv, message):
+    subst = {"{tmp}": str(tmp_path), "{samples}": str(shipped_samples()), "{scene}": str(exported / "scene.json")}
+    args = []
+    for a in argv:
+        for k, v in subst.items():
+            a = a.replace(k, v)
+        args.append(a)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
