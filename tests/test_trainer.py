@@ -217,3 +217,53 @@ def test_checkpoint_from_before_a_new_config_field_still_resumes(data, tmp_path)
     del meta["config"]["loss"]["mask_from_depth"]  # as written before that field existed
     save_checkpoint(run / "checkpoint.safetensors", tensors, meta)
     assert train(cfg(data), run, progress=False)["steps"] == 4
+
+
+def test_learning_rate_schedule_is_constant_then_a_cosine_tail():
+    from prismonet.model.trainer import learning_rate
+
+    c = TrainConfig(steps=300, lr=2e-4, lr_decay_from=100, lr_final_ratio=0.01)
+    lo = 2e-6
+    assert learning_rate(c, 0) == learning_rate(c, 99) == learning_rate(c, 100) == 2e-4
+    assert learning_rate(c, 200) == pytest.approx((2e-4 + lo) / 2, rel=1e-12)  # cos(pi/2) = 0
+    assert learning_rate(c, 150) == pytest.approx(lo + (2e-4 - lo) * (1 + math.cos(math.pi / 4)) / 2, rel=1e-12)
+    assert learning_rate(c, 300) == pytest.approx(lo, rel=1e-12)
+    assert learning_rate(TrainConfig(steps=300, lr=2e-4), 299) == 2e-4  # no decay: constant
+    with pytest.raises(ValueError, match="lr_decay_from"):
+        TrainConfig(steps=300, lr_decay_from=300)
+    with pytest.raises(ValueError, match="lr_final_ratio"):
+        TrainConfig(steps=300, lr_decay_from=10, lr_final_ratio=1.5)
+
+
+def test_a_decay_tail_added_on_resume_matches_a_run_with_it_from_the_start(data, tmp_path):
+    # train 4 constant-lr steps, then resume for 8 with a tail from step 4: the same as 8 steps with the tail set up front
+    train(cfg(data, steps=4), tmp_path / "a", progress=False)
+    a = train(cfg(data, steps=8, lr_decay_from=4), tmp_path / "a", progress=False)
+    b = train(cfg(data, steps=8, lr_decay_from=4), tmp_path / "b", progress=False)
+    assert a["last"] == b["last"]
+    lrs = [json.loads(line)["lr"] for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    c8 = cfg(data, steps=8, lr_decay_from=4)
+    from prismonet.model.trainer import learning_rate
+
+    assert lrs == [learning_rate(c8, s) for s in range(8)]
+    assert lrs[:5] == [1e-3] * 5 and lrs[-1] < lrs[5] < 1e-3
+
+
+def test_init_from_starts_a_run_with_a_trained_models_weights_at_another_slot_count(data, tmp_path):
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.prismonet import PriSMONet
+
+    train(cfg(data, steps=2), tmp_path / "src", progress=False)
+    src, _ = load_model(tmp_path / "src")
+    # a 4-slot run from the 3-slot model; lr so small that one Adam step moves no weight by more than ~1e-9
+    train(cfg(data, steps=1, lr=1e-12, init_from=str(tmp_path / "src"), model=ModelConfig(num_slots=4)), tmp_path / "ft", progress=False)
+    ft, info = load_model(tmp_path / "ft")
+    assert info["model"]["num_slots"] == 4
+    fresh = PriSMONet(ModelConfig(num_slots=4)).state_dict()
+    moved_from_fresh = 0.0
+    for k, v in src.state_dict().items():
+        assert torch.allclose(ft.state_dict()[k], v, atol=1e-8, rtol=0), k
+        moved_from_fresh = max(moved_from_fresh, float((fresh[k] - v).abs().max()))
+    assert moved_from_fresh > 1e-4  # the check could fail: training moved weights away from an initialisation
+    with pytest.raises(CheckpointError):
+        train(cfg(data, steps=1, init_from=str(tmp_path / "nowhere")), tmp_path / "bad", progress=False)

@@ -45,6 +45,13 @@ class TrainConfig:
     """Global batch size (split across DDP ranks)."""
     lr: float = 1e-4
     """Adam learning rate (the paper: 1e-4)."""
+    lr_decay_from: int | None = None
+    """Step from which the learning rate follows a cosine from ``lr`` down to ``lr * lr_final_ratio``
+    at ``steps`` (``None``: constant). Like ``steps`` it may be set when resuming, to add a decay tail."""
+    lr_final_ratio: float = 0.01
+    init_from: str | None = None
+    """A trained model (run folder or ``.safetensors``) whose weights start the run, e.g. to fine-tune a
+    3-object model on scenes with 4 or 5 objects (the encoder is shared across slots)."""
     input_noise: float = 0.02
     """Std of the Gaussian noise added to input images (the paper adds noise; its level is not given)."""
     depth_noise_eta: float = 0.0
@@ -67,10 +74,24 @@ class TrainConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.input_noise < 0 or self.depth_noise_eta < 0:
             raise ValueError("input_noise and depth_noise_eta must be non-negative")
+        if self.lr_decay_from is not None and not 0 <= self.lr_decay_from < self.steps:
+            raise ValueError(f"lr_decay_from must be in [0, steps={self.steps}), got {self.lr_decay_from}")
+        if not 0 <= self.lr_final_ratio <= 1:
+            raise ValueError(f"lr_final_ratio must be in [0, 1], got {self.lr_final_ratio}")
 
 
-RESUME_IGNORED = ("threads", "log_every", "image_every", "checkpoint_every", "steps", "max_nonfinite")
-"""Fields that may change between a run and its resumption (e.g. to train for longer)."""
+RESUME_IGNORED = ("threads", "log_every", "image_every", "checkpoint_every", "steps", "max_nonfinite", "lr_decay_from",
+                  "lr_final_ratio")
+"""Fields that may change between a run and its resumption (e.g. to train for longer, with a decay tail)."""
+
+
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    """The learning rate of step ``step`` (0-based): constant, then an optional cosine tail."""
+    if cfg.lr_decay_from is None or step < cfg.lr_decay_from:
+        return cfg.lr
+    t = min(1.0, (step - cfg.lr_decay_from) / (cfg.steps - cfg.lr_decay_from))
+    lo = cfg.lr * cfg.lr_final_ratio
+    return lo + 0.5 * (cfg.lr - lo) * (1.0 + math.cos(math.pi * t))
 
 
 def _resume_key(d: dict) -> dict:
@@ -168,11 +189,15 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     ds = SceneDataset(cfg.data, cfg.split)
     check_dataset_fits(ds, cfg)
     model = PriSMONet(cfg.model)
+    ckpt = run / "checkpoint.safetensors"
+    if cfg.init_from is not None and not ckpt.is_file():
+        from prismonet.model.io import load_model
+
+        model.load_state_dict(load_model(cfg.init_from, num_slots=cfg.model.num_slots)[0].state_dict())
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr)
     cfg_json = json.loads(json.dumps(asdict(cfg)))
 
-    ckpt = run / "checkpoint.safetensors"
     start, nonfinite, elapsed = 0, 0, 0.0
     if ckpt.is_file():
         tensors, meta = load_checkpoint(ckpt)
@@ -207,6 +232,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
             batch = ds.batch(idx.tolist())
             image, target_depth = make_inputs(batch, cfg, g)
+            for group in opt.param_groups:
+                group["lr"] = learning_rate(cfg, step)
             net.train()
             out = net(image, batch.K, batch.T_world_cam, batch.ground_z)
             terms = compute_losses(model, out, batch, cfg.loss, step, target_depth)
@@ -229,7 +256,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
                     for k, v in last.items():
                         writer.add_scalar(f"loss/{k}", v, step)
                     writer.add_scalar("train/nonfinite", nonfinite, step)
-                    log.write(json.dumps({"step": step, "time_s": round(elapsed, 2), "nonfinite": nonfinite, **last}) + "\n")
+                    writer.add_scalar("train/lr", opt.param_groups[0]["lr"], step)
+                    log.write(json.dumps({"step": step, "time_s": round(elapsed, 2), "nonfinite": nonfinite,
+                                          "lr": opt.param_groups[0]["lr"], **last}) + "\n")
                     log.flush()
                     bar.set_postfix(loss=f"{last['total']:.4f}")
                 if step % cfg.image_every == 0 or step == cfg.steps:
