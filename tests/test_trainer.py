@@ -267,3 +267,13 @@ def test_init_from_starts_a_run_with_a_trained_models_weights_at_another_slot_co
     assert moved_from_fresh > 1e-4  # the check could fail: training moved weights away from an initialisation
     with pytest.raises(CheckpointError):
         train(cfg(data, steps=1, init_from=str(tmp_path / "nowhere")), tmp_path / "bad", progress=False)
+
+
+def test_init_from_a_model_of_another_architecture_is_a_clear_error(data, tmp_path):
+    from prismonet.model.config import ModelConfig
+
+    train(cfg(data, steps=1), tmp_path / "src", progress=False)
+    wide = cfg(data, steps=1, init_from=str(tmp_path / "src"), model=ModelConfig(fc=(128, 128)))
+    with pytest.raises(CheckpointError, match=r"init_from .*src: does not fit this configuration"):
+        train(wide, tmp_path / "ft", progress=False)
+    assert not (tmp_path / "ft" / "checkpoint.safetensors").exists()

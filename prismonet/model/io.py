@@ -64,18 +64,23 @@ def load_model(path: str | Path, num_slots: int | None = None):
         tensors, _ = load_checkpoint(stem.with_suffix(".safetensors"))
     except (FileNotFoundError, ValueError) as e:
         raise CheckpointError(str(e)) from None
+    load_fitting(model, tensors, f"{stem}.safetensors")
+    model.eval()
+    return model, info
+
+
+def load_fitting(model, tensors: dict, where: str) -> None:
+    """Load ``tensors`` into ``model`` after checking that names and shapes fit; ``CheckpointError`` if not."""
     expected = model.state_dict()
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))
     if missing or unexpected:
-        raise CheckpointError(f"{stem}.safetensors: does not fit this configuration (missing {missing[:3]}, unexpected {unexpected[:3]})")
+        raise CheckpointError(f"{where}: does not fit this configuration (missing {missing[:3]}, unexpected {unexpected[:3]})")
     for name, t in expected.items():
         if t.shape != tensors[name].shape:
-            raise CheckpointError(f"{stem}.safetensors: does not fit this configuration: {name} has shape "
+            raise CheckpointError(f"{where}: does not fit this configuration: {name} has shape "
                                   f"{tuple(tensors[name].shape)}, expected {tuple(t.shape)}")
     model.load_state_dict(tensors)
-    model.eval()
-    return model, info
 
 
 def training_camera(model, info: dict):

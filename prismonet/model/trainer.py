@@ -191,9 +191,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     model = PriSMONet(cfg.model)
     ckpt = run / "checkpoint.safetensors"
     if cfg.init_from is not None and not ckpt.is_file():
-        from prismonet.model.io import load_model
+        from prismonet.model.io import load_fitting, load_model
 
-        model.load_state_dict(load_model(cfg.init_from, num_slots=cfg.model.num_slots)[0].state_dict())
+        load_fitting(model, load_model(cfg.init_from)[0].state_dict(), f"init_from {cfg.init_from}")
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr)
     cfg_json = json.loads(json.dumps(asdict(cfg)))

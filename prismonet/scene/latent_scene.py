@@ -166,4 +166,3 @@ class LatentScene:
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise LatentSceneError(f"{path}: not JSON ({e})") from None
         return LatentScene.from_dict(d, str(path))
-
