@@ -249,6 +249,37 @@ def test_a_decay_tail_added_on_resume_matches_a_run_with_it_from_the_start(data,
     assert lrs[:5] == [1e-3] * 5 and lrs[-1] < lrs[5] < 1e-3
 
 
+def test_warm_restarts_begin_a_new_cosine_and_leave_earlier_steps_unchanged():
+    from prismonet.model.trainer import learning_rate
+
+    lo = 2e-6
+    tail = TrainConfig(steps=300, lr=2e-4, lr_decay_from=100)
+    both = TrainConfig(steps=600, lr=2e-4, lr_decay_from=100, lr_restarts=(300, 400))
+    # the steps before the first restart follow the finished run's schedule exactly
+    assert [learning_rate(both, s) for s in range(300)] == [learning_rate(tail, s) for s in range(300)]
+    assert learning_rate(both, 300) == learning_rate(both, 400) == 2e-4  # each restart is back at lr
+    assert learning_rate(both, 350) == pytest.approx((2e-4 + lo) / 2, rel=1e-12)  # half of 300..400
+    assert learning_rate(both, 500) == pytest.approx((2e-4 + lo) / 2, rel=1e-12)  # half of 400..600
+    assert learning_rate(both, 600) == pytest.approx(lo, rel=1e-12)
+    for bad in ((300,), (50,), (100,), (400, 300)):
+        with pytest.raises(ValueError, match="lr_restarts"):
+            TrainConfig(steps=300 if bad == (300,) else 600, lr_decay_from=100, lr_restarts=bad)
+    with pytest.raises(ValueError, match="lr_restarts needs lr_decay_from"):
+        TrainConfig(steps=600, lr_restarts=(300,))
+    # JSON lists become the tuple the schedule reads
+    assert load_config(TrainConfig, overrides=["lr_decay_from=100", "lr_restarts=[300]", "steps=600"]).lr_restarts == (300,)
+
+
+def test_a_restart_added_to_a_finished_run_matches_a_run_with_it_from_the_start(data, tmp_path):
+    # 6 steps with a tail from step 2, then extended to 10 with a restart at 6 = 10 steps with both set up front
+    train(cfg(data, steps=6, lr_decay_from=2), tmp_path / "a", progress=False)
+    a = train(cfg(data, steps=10, lr_decay_from=2, lr_restarts=(6,)), tmp_path / "a", progress=False)
+    b = train(cfg(data, steps=10, lr_decay_from=2, lr_restarts=(6,)), tmp_path / "b", progress=False)
+    assert a["last"] == b["last"]
+    lrs = [json.loads(line)["lr"] for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert lrs[6] == 1e-3 and lrs[5] < lrs[2] == 1e-3 and lrs[9] < lrs[6]
+
+
 def test_init_from_starts_a_run_with_a_trained_models_weights_at_another_slot_count(data, tmp_path):
     from prismonet.model.config import ModelConfig
     from prismonet.model.prismonet import PriSMONet

@@ -49,6 +49,11 @@ class TrainConfig:
     """Step from which the learning rate follows a cosine from ``lr`` down to ``lr * lr_final_ratio``
     at ``steps`` (``None``: constant). Like ``steps`` it may be set when resuming, to add a decay tail."""
     lr_final_ratio: float = 0.01
+    lr_restarts: tuple[int, ...] = ()
+    """Warm restarts (SGDR): at each of these steps the rate jumps back to ``lr`` and a new cosine runs
+    down to ``lr * lr_final_ratio`` at the next restart or at ``steps``. They come after ``lr_decay_from``,
+    whose tail then ends at the first restart, so extending a finished run with a restart leaves the
+    schedule of the steps already taken unchanged."""
     init_from: str | None = None
     """A trained model (run folder or ``.safetensors``) whose weights start the run, e.g. to fine-tune a
     3-object model on scenes with 4 or 5 objects (the encoder is shared across slots)."""
@@ -78,18 +83,28 @@ class TrainConfig:
             raise ValueError(f"lr_decay_from must be in [0, steps={self.steps}), got {self.lr_decay_from}")
         if not 0 <= self.lr_final_ratio <= 1:
             raise ValueError(f"lr_final_ratio must be in [0, 1], got {self.lr_final_ratio}")
+        if self.lr_restarts:
+            if self.lr_decay_from is None:
+                raise ValueError("lr_restarts needs lr_decay_from (the first cosine ends at the first restart)")
+            marks = (self.lr_decay_from, *self.lr_restarts, self.steps)
+            if any(not isinstance(m, int) for m in self.lr_restarts) or any(a >= b for a, b in zip(marks, marks[1:])):
+                raise ValueError(f"lr_restarts must be integers increasing strictly from lr_decay_from="
+                                 f"{self.lr_decay_from} to below steps={self.steps}, got {list(self.lr_restarts)}")
 
 
 RESUME_IGNORED = ("threads", "log_every", "image_every", "checkpoint_every", "steps", "max_nonfinite", "lr_decay_from",
-                  "lr_final_ratio")
+                  "lr_final_ratio", "lr_restarts")
 """Fields that may change between a run and its resumption (e.g. to train for longer, with a decay tail)."""
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
-    """The learning rate of step ``step`` (0-based): constant, then an optional cosine tail."""
+    """The learning rate of step ``step`` (0-based): constant, then an optional cosine tail, which
+    each warm restart begins again."""
     if cfg.lr_decay_from is None or step < cfg.lr_decay_from:
         return cfg.lr
-    t = min(1.0, (step - cfg.lr_decay_from) / (cfg.steps - cfg.lr_decay_from))
+    marks = (cfg.lr_decay_from, *cfg.lr_restarts, cfg.steps)
+    k = max(i for i in range(len(marks) - 1) if step >= marks[i])
+    t = min(1.0, (step - marks[k]) / (marks[k + 1] - marks[k]))
     lo = cfg.lr * cfg.lr_final_ratio
     return lo + 0.5 * (cfg.lr - lo) * (1.0 + math.cos(math.pi * t))
 
