@@ -47,7 +47,8 @@ class TrainConfig:
     """Adam learning rate (the paper: 1e-4)."""
     lr_decay_from: int | None = None
     """Step from which the learning rate follows a cosine from ``lr`` down to ``lr * lr_final_ratio``
-    at ``steps`` (``None``: constant). Like ``steps`` it may be set when resuming, to add a decay tail."""
+    at ``steps``, or at the first of ``lr_restarts`` (``None``: constant). Like ``steps`` it may be set
+    when resuming, to add a decay tail."""
     lr_final_ratio: float = 0.01
     lr_restarts: tuple[int, ...] = ()
     """Warm restarts (SGDR): at each of these steps the rate jumps back to ``lr`` and a new cosine runs
