@@ -237,20 +237,22 @@ def cmd_evaluate(args) -> int:
     import json
 
     from prismonet.data.dataset import SceneDataset
-    from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_table
+    from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_steps, format_table
     from prismonet.model.io import load_model, training_loss_config
     from prismonet.model.refine import RefineConfig
 
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds)
-    refine_cfg = RefineConfig(args.refine, args.refine_lr) if args.refine else None
+    overrides = {"lr": args.refine_lr, "pose_lr_scale": args.refine_pose_lr_scale}
+    refine_cfg = RefineConfig(args.refine, **{k: v for k, v in overrides.items() if v is not None}) if args.refine else None
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
                              refine_cfg=refine_cfg, loss_cfg=training_loss_config(info))
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects, "
           f"{results['refine_steps']} refinement steps, {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+    print("\nper encoder step:\n" + format_steps(results))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
         print(f"wrote {args.json}")
@@ -347,10 +349,12 @@ def cmd_reconstruct(args) -> int:
 
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
-    from prismonet.model.io import load_model, prior_fingerprint
+    from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
+    from prismonet.model.refine import RefineConfig, refine
     from prismonet.scene import LatentScene
     from prismonet.viz.decomposition import decomposition_figure
 
+    refine_cfg = RefineConfig(args.refine)
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     fp = prior_fingerprint(model.prior)
     ds = SceneDataset(args.data, split=args.split)
@@ -367,6 +371,8 @@ def cmd_reconstruct(args) -> int:
             idx = list(range(s, min(s + 8, n)))
             b = ds.batch(idx)
             out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=args.objects)
+            if args.refine > 0:
+                out = refine(model, out, b, training_loss_config(info), refine_cfg, use_depth=has_depth)
             for j, i in enumerate(idx):
                 name = ds.names[i]
                 fig = decomposition_figure(b.rgb, out, j, out_dir / f"{name}.png", b.depth if has_depth else None)
@@ -381,9 +387,10 @@ def cmd_real_reconstruct(args) -> int:
 
     box, gain = _box_and_gain(args)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
-                              args.min_pixels, args.format, progress=not args.quiet)
+                              args.min_pixels, args.format, refine_steps=args.refine, progress=not args.quiet)
     for r in recs:
-        print(f"  {r['photo']}: {r['objects_found']} objects found; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
+        psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
+        print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
     print(f"wrote figures, latent scenes, meshes and summary.json to {args.out}")
     return 0
 
@@ -468,7 +475,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--limit", type=int, help="evaluate only the first N scenes")
     ev.add_argument("--json", help="also write the results here")
     ev.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K gradient steps per scene (beyond the paper)")
-    ev.add_argument("--refine-lr", type=float, default=0.01)
+    ev.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default: RefineConfig's, 0.01)")
+    ev.add_argument("--refine-pose-lr-scale", type=float,
+                    help="positions and rotations step this many times faster than --refine-lr (default: RefineConfig's, 3)")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 
@@ -480,6 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--count", type=int, help="only the first N scenes")
     rc.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
     rc.add_argument("--any-camera", action="store_true", help="allow a camera that differs from training (real photos)")
+    rc.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K steps (against depth too, when the data has it)")
     rc.set_defaults(func=cmd_reconstruct)
 
     shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
@@ -547,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
     rr.add_argument("--min-pixels", type=int, default=25, help="visible pixels for an object to count as found")
     rr.add_argument("--format", default="ply", choices=["ply", "obj", "glb"], help="mesh format")
+    rr.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents against each photo for K steps (image term only)")
     rr.add_argument("--quiet", action="store_true")
     rr.set_defaults(func=cmd_real_reconstruct)
 

@@ -45,13 +45,14 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     n = min(scenes, len(ds))
     if n <= 0:
         raise ValueError(f"--scenes must be positive, got {scenes}")
+    refine_cfg = RefineConfig(refine_steps)  # validates the step count
     fp = prior_fingerprint(net.prior)
     records = []
     for i in tqdm(range(n), desc="demo", unit="scene", disable=not progress):
         b = ds.batch([i])
         o = net(b.rgb, b.K, b.T_world_cam, b.ground_z)
         if refine_steps > 0:
-            o = refine(net, o, b, training_loss_config(info), RefineConfig(refine_steps))
+            o = refine(net, o, b, training_loss_config(info), refine_cfg)
         name = f"scene_{i:03d}"
         fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", b.depth)
         LatentScene.from_output(o, b, 0, fp).save(out / f"{name}.json")

@@ -106,3 +106,18 @@ def test_rotation_error_up_to_symmetry():
     assert symmetry_period(0) == 0.0  # sphere (1, 1, 1)
     assert symmetry_period(18) == pytest.approx(math.pi / 2)  # cube (1, 1, 1)
     assert symmetry_period(19) == pytest.approx(math.pi)  # box (1, 0.75, 1)
+
+
+def test_recurrent_step_metrics_hand_computed():
+    from prismonet.evaluation.metrics import recurrent_step_metrics
+
+    gt = np.stack([scene([(0, 10, 0, 10), (15, 25, 15, 25)]), scene([(0, 10, 0, 10), (15, 25, 15, 25)])])
+    # scene 0: step 1 on gt 1, step 2 misplaced (IoU 0), step 3 hidden (4 px < 25);
+    # scene 1: step 2 on gt 2, step 1 hidden entirely, step 3 on gt 1
+    p0 = scene([(0, 10, 0, 10), (26, 31, 0, 10)])
+    p0[30:32, 30:32] = 3
+    p1 = scene([(0, 0, 0, 0), (15, 25, 15, 25), (0, 10, 0, 10)])
+    steps = recurrent_step_metrics(np.stack([p0, p1]), gt, 3)
+    assert [s["visible"] for s in steps] == [0.5, 1.0, 0.5]
+    assert [s["precision"] for s in steps] == [1.0, 0.5, 1.0]
+    assert math.isnan(recurrent_step_metrics(np.zeros((1, 32, 32), np.int64), gt[:1], 1)[0]["precision"])

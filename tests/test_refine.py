@@ -37,3 +37,41 @@ def test_refinement_lowers_the_loss_and_keeps_the_weights():
     assert bool(((s >= lo - 1e-6) & (s <= hi + 1e-6)).all())
     assert torch.allclose(ref.latents.params.cos_sin.norm(dim=-1), torch.ones(2, 3), atol=1e-5)
     assert refine(model, out, b, loss_cfg, RefineConfig(steps=0)) is out
+
+
+def test_poses_take_a_larger_first_step():
+    # Adam's first step moves every parameter with a non-zero gradient by exactly its lr (up to eps).
+    model, info = load_model("shipped")
+    b = SceneDataset(shipped_samples(), split="test").batch([0])
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    p0 = out.latents.params
+    ref = refine(model, out, b, training_loss_config(info), RefineConfig(steps=1, lr=0.01, pose_lr_scale=3.0))
+    p1 = ref.latents.params
+    step_pos = (p1.position - p0.position).abs()
+    step_sh = (p1.z_sh - p0.z_sh).abs()
+    assert torch.allclose(step_pos.max(), torch.tensor(0.03), atol=1e-4), step_pos
+    assert bool((step_pos <= 0.03 + 1e-4).all())
+    assert torch.allclose(step_sh.max(), torch.tensor(0.01), atol=1e-4)
+    assert bool((step_sh <= 0.01 + 1e-4).all())
+
+
+def test_refine_config_rejects_bad_step_sizes():
+    import pytest
+    for kwargs in ({"lr": 0.0}, {"pose_lr_scale": 0.0}, {"pose_lr_scale": -1.0}, {"steps": -1}):
+        with pytest.raises(ValueError):
+            RefineConfig(**kwargs)
+
+
+def test_reconstruct_cli_refines_the_written_latent_scene(tmp_path):
+    import json
+
+    from prismonet.cli import main
+
+    data = str(shipped_samples())
+    for k in (0, 3):
+        assert main(["reconstruct", "shipped", data, "--count", "1", "--refine", str(k), "--out", str(tmp_path / f"k{k}")]) == 0
+    s0, s3 = (json.loads((tmp_path / f"k{k}" / "0.json").read_text()) for k in (0, 3))
+    moved = [torch.tensor(b["position"]) - torch.tensor(a["position"]) for a, b in zip(s0["objects"], s3["objects"])]
+    assert max(float(m.abs().max()) for m in moved) > 1e-3
+    assert main(["reconstruct", "shipped", data, "--refine", "-1", "--out", str(tmp_path / "bad")]) != 0

@@ -13,6 +13,7 @@ from prismonet.evaluation.metrics import (
     depth_metrics,
     detection_metrics,
     image_metrics,
+    recurrent_step_metrics,
     scene_detection,
     symmetry_period,
 )
@@ -51,6 +52,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     ``refine_cfg``: a ``RefineConfig`` to refine the latents at test time (with ``loss_cfg``, the
     losses to refine on; default: ``LossConfig()``). The time per scene is reported either way.
+    ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``), with each step's
+    mean position error and median predicted / true scale over its matched objects.
     """
     import time
 
@@ -61,7 +64,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     n = len(ds) if limit is None else min(limit, len(ds))
     pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d = [], [], [], [], [], []
-    pos_err, rot_err, rot_sym = [], [], []
+    pos_err, rot_err, rot_sym, pair_step, scale_ratio = [], [], [], [], []
     model.eval()
     seconds = 0.0
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
@@ -84,6 +87,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         for j in range(len(b)):
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
                 pos_err.append(float((p.position[j, pk - 1] - b.obj_position[j, gk - 1]).norm()))
+                pair_step.append(pk)
+                scale_ratio.append(float(p.scale[j, pk - 1] / b.obj_scale[j, gk - 1]))
                 gt_yaw = float(b.obj_yaw[j, gk - 1])
                 rot_err.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, None))
                 rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, symmetry_period(int(b.obj_shape[j, gk - 1]))))
@@ -97,9 +102,24 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["rot_err"] = float(np.median(rot_err)) if rot_err else math.nan
     results["rot_err_sym"] = float(np.median(rot_sym)) if rot_sym else math.nan
     results["matched_objects"] = len(pos_err)
+    steps = recurrent_step_metrics(cat(pred_inst), cat(gt_inst), results["num_slots"])
+    pair_step, pos_arr, ratio_arr = np.asarray(pair_step), np.asarray(pos_err), np.asarray(scale_ratio)
+    for st in steps:
+        sel = pair_step == st["step"]
+        st["pos_err"] = float(pos_arr[sel].mean()) if sel.any() else math.nan
+        st["scale_ratio"] = float(np.median(ratio_arr[sel])) if sel.any() else math.nan
+    results["per_step"] = steps
     results["refine_steps"] = 0 if refine_cfg is None else refine_cfg.steps
     results["seconds_per_scene"] = seconds / max(n, 1)
     return results
+
+
+def format_steps(results: dict) -> str:
+    """A Markdown table of ``results["per_step"]``: one row per recurrent encoder step."""
+    lines = ["| step | visible | precision@0.5 | pos | scale pred/true |", "|---|---|---|---|---|"]
+    for st in results["per_step"]:
+        lines.append(f"| {st['step']} | {st['visible']:.3f} | {st['precision']:.3f} | {st['pos_err']:.3f} | {st['scale_ratio']:.3f} |")
+    return "\n".join(lines)
 
 
 def format_table(rows: list[tuple[str, dict]]) -> str:

@@ -148,3 +148,26 @@ def symmetry_period(shape_id: int) -> float | None:
     if hx == hy:
         return 0.0 if s.category in ("sphere", "cylinder") else math.pi / 2
     return math.pi
+
+
+def recurrent_step_metrics(pred_instances: np.ndarray, gt_instances: np.ndarray, num_slots: int) -> list[dict]:
+    """Per encoder step ``k = 1..num_slots`` (prediction id ``k``): how often it is visible, and how
+    often a visible one is a detection at IoU 0.5.
+
+    ``visible``: fraction of scenes in which step k's object has at least ``MIN_VISIBLE_PIXELS``
+    pixels; ``precision``: of those, the fraction matched to a ground-truth object. Shows whether
+    later steps of the recurrent encoder are worse than earlier ones.
+    """
+    visible = np.zeros(num_slots)
+    matched = np.zeros(num_slots)
+    for p, g in zip(pred_instances, gt_instances):
+        pid, _ = instance_masks(p)
+        for k in pid:
+            if 1 <= k <= num_slots:
+                visible[k - 1] += 1
+        for pk, _ in scene_detection(p, g, 0.5)["pairs"]:
+            if 1 <= pk <= num_slots:
+                matched[pk - 1] += 1
+    n = max(len(pred_instances), 1)
+    return [{"step": k + 1, "visible": float(visible[k] / n),
+             "precision": float(matched[k] / visible[k]) if visible[k] else math.nan} for k in range(num_slots)]
