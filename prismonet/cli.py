@@ -245,7 +245,7 @@ def cmd_evaluate(args) -> int:
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds)
     overrides = {"lr": args.refine_lr, "pose_lr_scale": args.refine_pose_lr_scale}
-    refine_cfg = RefineConfig(args.refine, **{k: v for k, v in overrides.items() if v is not None}) if args.refine else None
+    refine_cfg = RefineConfig(args.refine, **{k: v for k, v in overrides.items() if v is not None})  # validates even with K = 0
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
                              refine_cfg=refine_cfg, loss_cfg=training_loss_config(info))
     trained = info.get("model", {}).get("num_slots", "?")
@@ -356,6 +356,7 @@ def cmd_reconstruct(args) -> int:
 
     refine_cfg = RefineConfig(args.refine)
     model, info = load_model(args.checkpoint, num_slots=args.objects)
+    loss_cfg = training_loss_config(info)
     fp = prior_fingerprint(model.prior)
     ds = SceneDataset(args.data, split=args.split)
     H, W = ds.arrays["rgb"].shape[1:3]
@@ -372,7 +373,7 @@ def cmd_reconstruct(args) -> int:
             b = ds.batch(idx)
             out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=args.objects)
             if args.refine > 0:
-                out = refine(model, out, b, training_loss_config(info), refine_cfg, use_depth=has_depth)
+                out = refine(model, out, b, loss_cfg, refine_cfg, use_depth=has_depth)
             for j, i in enumerate(idx):
                 name = ds.names[i]
                 fig = decomposition_figure(b.rgb, out, j, out_dir / f"{name}.png", b.depth if has_depth else None)

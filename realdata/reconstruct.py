@@ -36,6 +36,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.metrics import image_metrics
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
     from prismonet.scene import LatentScene
@@ -64,10 +65,10 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
             b.ground_z[:] = train_ground
         with torch.no_grad():
             o = net(b.rgb, b.K, b.T_world_cam, b.ground_z)
-        psnr = {"encoder": _psnr(o.composite.image, b.rgb)}
+        psnr = {"encoder": image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]}
         if refine_steps > 0:
             o = refine(net, o, b, loss_cfg, refine_cfg, use_depth=False)
-            psnr["refined"] = _psnr(o.composite.image, b.rgb)
+            psnr["refined"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
         name = ds.names[i]
         rec = by_name[name]
         photo = load_photo(rec["photo"])
@@ -86,11 +87,6 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "finite": finite, "psnr": psnr, "refine_steps": refine_steps, "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
-
-
-def _psnr(image: torch.Tensor, target: torch.Tensor) -> float:
-    """PSNR (data range 1) of a render against the prepared photo, both ``(1, 3, H, W)``."""
-    return float(10 * torch.log10(1.0 / ((image - target) ** 2).mean().clamp_min(1e-12)))
 
 
 def _has_ground_pose(calibration) -> bool:

@@ -75,3 +75,10 @@ def test_reconstruct_cli_refines_the_written_latent_scene(tmp_path):
     moved = [torch.tensor(b["position"]) - torch.tensor(a["position"]) for a, b in zip(s0["objects"], s3["objects"])]
     assert max(float(m.abs().max()) for m in moved) > 1e-3
     assert main(["reconstruct", "shipped", data, "--refine", "-1", "--out", str(tmp_path / "bad")]) != 0
+
+
+def test_evaluate_cli_rejects_a_bad_pose_step_even_without_refinement(capsys):
+    from prismonet.cli import main
+
+    assert main(["evaluate", "shipped", str(shipped_samples()), "--refine-pose-lr-scale", "-1", "--quiet"]) != 0
+    assert "pose_lr_scale > 0" in capsys.readouterr().err

@@ -1,6 +1,5 @@
 """``prismonet export``, ``edit`` and ``views`` on the shipped model and sample scenes."""
 
-
 import cv2
 import pytest
 import trimesh

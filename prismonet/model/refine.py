@@ -2,8 +2,8 @@
 against the input RGB-D, through the differentiable renderer.
 
 The encoder's output is the starting point; shape and texture latents, poses, scales and the
-background colour are then optimised with Adam (poses at a larger step) for ``steps`` steps on the training losses at
-their end-of-training schedule (least blur, final shape-regulariser weight). The network weights
+background colour are then optimised with Adam (poses at a larger step) for ``steps`` steps on
+the training losses at their end-of-training schedule (least blur, final shape-regulariser weight). The network weights
 stay fixed. Without depth (real photos) only the image term is used.
 """
 
@@ -30,7 +30,7 @@ class RefineConfig:
     pose_lr_scale: float = 3.0
     """Positions and in-plane rotations step at ``lr * pose_lr_scale`` (world units / unit circle).
     The encoder's largest residual errors are misplaced objects, and a faster pose step fixes more
-    of them in K steps (first 128 test scenes, K=10: AP0.5 0.893 at x1, 0.924 at x3; EVALUATION.md)."""
+    of them in K steps (first 64 test scenes, K=10: AP0.5 0.867 at x1, 0.911 at x3; EVALUATION.md)."""
     min_scale: float = 0.05
 
     def __post_init__(self) -> None:
