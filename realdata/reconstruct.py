@@ -7,7 +7,8 @@ size and taken to be seen by the model's training camera, as the paper did with 
 An object is "found" when at least ``min_pixels`` pixels of it are visible in the composed render
 (the evaluation's 25-pixel rule). ``refine_steps > 0`` refines the encoder's latents against the
 photo (image term only: a photo has no depth) before anything is written; the summary records the
-render's PSNR against the prepared photo before and after.
+render's PSNR against the prepared photo before and after. ``extra_slots > 0`` decodes that many more
+encoder steps and keeps the slots whose composition best matches the photo (``prismonet.model.select``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ def found_objects(instance: torch.Tensor, num_slots: int, min_pixels: int = MIN_
 def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | Path = "shipped", calibration: str | Path | None = None,
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
-                       resolution: int = 40, refine_steps: int = 0, progress: bool = True) -> list[dict]:
+                       resolution: int = 40, refine_steps: int = 0, extra_slots: int = 0,
+                       progress: bool = True) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``)."""
     from tqdm import tqdm
 
@@ -39,6 +41,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from prismonet.evaluation.metrics import image_metrics
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
+    from prismonet.model.select import decode_overcomplete
     from prismonet.scene import LatentScene
     from prismonet.scene.export import scene_mesh, write_mesh
     from prismonet.viz.decomposition import decomposition_figure
@@ -55,6 +58,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     train_cam, train_ground = training_camera(net, info)
     fp = prior_fingerprint(net.prior)
     refine_cfg = RefineConfig(refine_steps)  # validates the step count
+    if extra_slots < 0:
+        raise ValueError(f"extra_slots must be non-negative, got {extra_slots}")
     loss_cfg = training_loss_config(info)
     results = []
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
@@ -64,7 +69,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
             b.T_world_cam[:] = train_cam.T_world_cam
             b.ground_z[:] = train_ground
         with torch.no_grad():
-            o = net(b.rgb, b.K, b.T_world_cam, b.ground_z)
+            o = decode_overcomplete(net, b, extra=extra_slots, use_depth=False, w_image=loss_cfg.w_image)
         psnr = {"encoder": image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]}
         if refine_steps > 0:
             o = refine(net, o, b, loss_cfg, refine_cfg, use_depth=False)
@@ -84,7 +89,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "calibrated ground pose" if has_ground else "model's training camera (assumed)",
-                        "finite": finite, "psnr": psnr, "refine_steps": refine_steps, "prepare": rec})
+                        "finite": finite, "psnr": psnr, "refine_steps": refine_steps,
+                        "extra_slots": extra_slots, "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 

@@ -231,3 +231,15 @@ def test_real_reconstruct_refinement_fits_the_photo_better(tmp_path):
     assert r["psnr"]["refined"] > r["psnr"]["encoder"] + 0.2, r["psnr"]  # measured 17.55 -> 17.91 dB
     with pytest.raises(ValueError, match="steps must be >= 0"):
         reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "bad", refine_steps=-1, progress=False)
+
+
+def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
+    """The kept slots minimise the colour error over all subsets, the first three steps included."""
+    from realdata.reconstruct import reconstruct_photos
+
+    (plain,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e0", progress=False)
+    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", extra_slots=2, progress=False)
+    assert extra["extra_slots"] == 2 and extra["finite"] and extra["objects_found"] <= 3
+    assert extra["psnr"]["encoder"] >= plain["psnr"]["encoder"] - 1e-6, (plain["psnr"], extra["psnr"])
+    with pytest.raises(ValueError, match="non-negative"):
+        reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "bad", extra_slots=-1, progress=False)

@@ -47,13 +47,16 @@ def check_compatible(model, info: dict, ds) -> None:
 
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
-                   refine_cfg=None, loss_cfg=None) -> dict:
+                   refine_cfg=None, loss_cfg=None, extra_slots: int = 0) -> dict:
     """Run the model over a dataset split and compute the paper's measures.
 
     ``refine_cfg``: a ``RefineConfig`` to refine the latents at test time (with ``loss_cfg``, the
     losses to refine on; default: ``LossConfig()``). The time per scene is reported either way.
-    ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``), with each step's
-    mean position error and median predicted / true scale over its matched objects.
+    ``extra_slots``: decode that many more encoder steps and keep the best ``num_slots`` of them
+    (``prismonet.model.select``), before any refinement.
+    ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
+    steps that were not kept count as not visible), with each step's mean position error and median
+    predicted / true scale over its matched objects.
     """
     import time
 
@@ -61,22 +64,29 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     from prismonet.model.losses import LossConfig
     from prismonet.model.refine import refine
+    from prismonet.model.select import decode_overcomplete
 
+    if extra_slots < 0:
+        raise ValueError(f"extra slots must be non-negative, got {extra_slots}")
     n = len(ds) if limit is None else min(limit, len(ds))
-    pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d = [], [], [], [], [], []
+    loss_cfg = loss_cfg or LossConfig()
+    N = num_slots or model.cfg.num_slots
+    step_inst, pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d = [], [], [], [], [], [], []
     pos_err, rot_err, rot_sym, pair_step, scale_ratio = [], [], [], [], []
     model.eval()
     seconds = 0.0
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
-        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=num_slots)
+        out = decode_overcomplete(model, b, N, extra_slots, w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth)
         if refine_cfg is not None and refine_cfg.steps > 0:
-            out = refine(model, out, b, loss_cfg or LossConfig(), refine_cfg)
+            out = refine(model, out, b, loss_cfg, refine_cfg)
         seconds += time.perf_counter() - t0
         pi = out.composite.instance.numpy()
         gi = b.instance.numpy()
         pred_inst.append(pi)
+        steps_1 = np.concatenate([np.zeros((len(b), 1), np.int64), out.encoder_steps().numpy() + 1], 1)  # id -> 1-based step
+        step_inst.append(np.take_along_axis(steps_1, pi.reshape(len(b), -1), 1).reshape(pi.shape))
         gt_inst.append(gi)
         pred_img.append(out.composite.image.numpy())
         gt_img.append(b.rgb.numpy())
@@ -87,13 +97,13 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         for j in range(len(b)):
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
                 pos_err.append(float((p.position[j, pk - 1] - b.obj_position[j, gk - 1]).norm()))
-                pair_step.append(pk)
+                pair_step.append(int(steps_1[j, pk]))
                 scale_ratio.append(float(p.scale[j, pk - 1] / b.obj_scale[j, gk - 1]))
                 gt_yaw = float(b.obj_yaw[j, gk - 1])
                 rot_err.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, None))
                 rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, symmetry_period(int(b.obj_shape[j, gk - 1]))))
     cat = np.concatenate
-    results = {"scenes": n, "num_slots": num_slots or model.cfg.num_slots}
+    results = {"scenes": n, "num_slots": N, "extra_slots": extra_slots}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
     results.update(image_metrics(cat(pred_img), cat(gt_img)))
     results.update(depth_metrics(cat(pred_d), cat(gt_d)))
@@ -102,7 +112,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["rot_err"] = float(np.median(rot_err)) if rot_err else math.nan
     results["rot_err_sym"] = float(np.median(rot_sym)) if rot_sym else math.nan
     results["matched_objects"] = len(pos_err)
-    steps = recurrent_step_metrics(cat(pred_inst), cat(gt_inst), results["num_slots"])
+    steps = recurrent_step_metrics(cat(step_inst), cat(gt_inst), N + extra_slots)
     pair_step, pos_arr, ratio_arr = np.asarray(pair_step), np.asarray(pos_err), np.asarray(scale_ratio)
     for st in steps:
         sel = pair_step == st["step"]

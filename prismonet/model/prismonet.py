@@ -42,6 +42,14 @@ class ModelOutput:
     bg_depth: torch.Tensor
     obj_soft_mask: torch.Tensor | None = None
     """``(B, N, H, W)`` differentiable silhouettes when ``cfg.soft_mask_tau > 0``."""
+    slot_steps: torch.Tensor | None = None
+    """``(B, N)`` the 0-based encoder step that found each slot; ``None``: slot k is step k. Differs
+    when slots were selected among more encoder steps (``prismonet.model.select``)."""
+
+    def encoder_steps(self) -> torch.Tensor:
+        """``(B, N)`` the 0-based encoder step of each slot."""
+        B, N = self.obj_depth.shape[:2]
+        return self.slot_steps if self.slot_steps is not None else torch.arange(N).expand(B, N)
 
 
 class PriSMONet(nn.Module):

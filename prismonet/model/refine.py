@@ -77,4 +77,6 @@ def refine(model, out: ModelOutput, batch, loss_cfg: LossConfig, cfg: RefineConf
                 cs.div_(cs.norm(dim=-1, keepdim=True).clamp_min(1e-6))
     with torch.no_grad():
         params = SceneParams(z_sh.detach(), z_tex.detach(), pos.detach(), cs.detach(), scale.detach(), p0.axis)
-        return render_latents(model, params, bg.detach(), batch.K, batch.T_world_cam, batch.ground_z, H, W)
+        new = render_latents(model, params, bg.detach(), batch.K, batch.T_world_cam, batch.ground_z, H, W)
+    new.slot_steps = out.slot_steps
+    return new
