@@ -352,13 +352,12 @@ def cmd_reconstruct(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
-    from prismonet.model.select import decode_overcomplete
+    from prismonet.model.select import check_extra_slots, decode_overcomplete
     from prismonet.scene import LatentScene
     from prismonet.viz.decomposition import decomposition_figure
 
     refine_cfg = RefineConfig(args.refine)
-    if args.extra_slots < 0:
-        raise ValueError(f"--extra-slots must be non-negative, got {args.extra_slots}")
+    check_extra_slots(args.extra_slots)
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     loss_cfg = training_loss_config(info)
     fp = prior_fingerprint(model.prior)

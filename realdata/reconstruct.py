@@ -41,13 +41,15 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from prismonet.evaluation.metrics import image_metrics
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
-    from prismonet.model.select import decode_overcomplete
+    from prismonet.model.select import check_extra_slots, decode_overcomplete
     from prismonet.scene import LatentScene
     from prismonet.scene.export import scene_mesh, write_mesh
     from prismonet.viz.decomposition import decomposition_figure
     from realdata.io import load_photo
     from realdata.pipeline import prepare_photos
 
+    refine_cfg = RefineConfig(refine_steps)  # validates the step count before any work
+    check_extra_slots(extra_slots)
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
     prepared = out / "prepared"
@@ -57,9 +59,6 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     has_ground = calibration is not None and _has_ground_pose(calibration)
     train_cam, train_ground = training_camera(net, info)
     fp = prior_fingerprint(net.prior)
-    refine_cfg = RefineConfig(refine_steps)  # validates the step count
-    if extra_slots < 0:
-        raise ValueError(f"extra_slots must be non-negative, got {extra_slots}")
     loss_cfg = training_loss_config(info)
     results = []
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):

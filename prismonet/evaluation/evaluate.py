@@ -64,10 +64,9 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     from prismonet.model.losses import LossConfig
     from prismonet.model.refine import refine
-    from prismonet.model.select import decode_overcomplete
+    from prismonet.model.select import check_extra_slots, decode_overcomplete
 
-    if extra_slots < 0:
-        raise ValueError(f"extra slots must be non-negative, got {extra_slots}")
+    check_extra_slots(extra_slots)
     n = len(ds) if limit is None else min(limit, len(ds))
     loss_cfg = loss_cfg or LossConfig()
     N = num_slots or model.cfg.num_slots

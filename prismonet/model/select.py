@@ -20,6 +20,13 @@ from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.render import SceneParams, composite
 
 
+def check_extra_slots(extra: int) -> None:
+    """Raise ``ValueError`` unless ``extra`` is a valid number of extra encoder steps (callers check
+    up front, before loading data or running anything)."""
+    if extra < 0:
+        raise ValueError(f"extra slots must be non-negative, got {extra}")
+
+
 def gather_slots(out: ModelOutput, idx: torch.Tensor) -> ModelOutput:
     """The slots ``idx (B, N)`` (indices into ``out``'s slots, per scene) of ``out``, composed anew."""
     if idx.dim() != 2 or idx.shape[0] != out.obj_depth.shape[0]:
@@ -74,8 +81,7 @@ def decode_overcomplete(model, batch, num_objects: int | None = None, extra: int
                         w_image: float = 1.0, w_depth: float = 0.1) -> ModelOutput:
     """``model``'s output on ``batch`` with ``num_objects`` slots (default: the model's), chosen among
     ``num_objects + extra`` encoder steps by ``select_slots`` (against depth too, if ``use_depth``)."""
-    if extra < 0:
-        raise ValueError(f"extra slots must be non-negative, got {extra}")
+    check_extra_slots(extra)
     N = model.cfg.num_slots if num_objects is None else num_objects
     out = model(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z, num_slots=N + extra)
     if extra == 0:
