@@ -140,3 +140,10 @@ def test_cli_extra_slots(tmp_path, capsys):
     assert main(["reconstruct", "shipped", data, "--extra-slots", "-1", "--out", str(tmp_path / "bad")]) != 0
     assert main(["evaluate", "shipped", data, "--extra-slots", "-1", "--quiet"]) != 0
     assert "non-negative" in capsys.readouterr().err
+
+
+def test_gather_rejects_a_badly_shaped_index():
+    out = _synthetic()
+    for bad in (torch.tensor([0, 1]), torch.tensor([[0, 1], [1, 2]])):
+        with pytest.raises(ValueError, match="expected shape"):
+            gather_slots(out, bad)
