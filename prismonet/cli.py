@@ -240,18 +240,21 @@ def cmd_evaluate(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_steps, format_table
     from prismonet.model.io import load_model, training_loss_config
     from prismonet.model.refine import RefineConfig
+    from prismonet.model.search import SearchConfig
 
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds)
     overrides = {"lr": args.refine_lr, "pose_lr_scale": args.refine_pose_lr_scale}
     refine_cfg = RefineConfig(args.refine, **{k: v for k, v in overrides.items() if v is not None})  # validates even with K = 0
+    search_cfg = SearchConfig(rounds=args.search)
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
-                             refine_cfg=refine_cfg, loss_cfg=training_loss_config(info), extra_slots=args.extra_slots)
+                             refine_cfg=refine_cfg, loss_cfg=training_loss_config(info), extra_slots=args.extra_slots,
+                             search_cfg=search_cfg)
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects, "
-          f"{results['extra_slots']} extra slots, {results['refine_steps']} refinement steps, "
+          f"{results['extra_slots']} extra slots, {results['search_rounds']} search rounds, {results['refine_steps']} refinement steps, "
           f"{1000 * results['seconds_per_scene']:.1f} ms per scene)")
     print("\nper encoder step:\n" + format_steps(results))
     if args.json:
@@ -352,11 +355,13 @@ def cmd_reconstruct(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
+    from prismonet.model.search import SearchConfig, search_latents
     from prismonet.model.select import check_extra_slots, decode_overcomplete
     from prismonet.scene import LatentScene
     from prismonet.viz.decomposition import decomposition_figure
 
     refine_cfg = RefineConfig(args.refine)
+    search_cfg = SearchConfig(rounds=args.search)
     check_extra_slots(args.extra_slots)
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     loss_cfg = training_loss_config(info)
@@ -376,6 +381,7 @@ def cmd_reconstruct(args) -> int:
             b = ds.batch(idx)
             out = decode_overcomplete(model, b, args.objects, args.extra_slots, use_depth=has_depth,
                                       w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth)
+            out = search_latents(model, out, b, search_cfg, use_depth=has_depth)
             if args.refine > 0:
                 out = refine(model, out, b, loss_cfg, refine_cfg, use_depth=has_depth)
             for j, i in enumerate(idx):
@@ -393,7 +399,7 @@ def cmd_real_reconstruct(args) -> int:
     box, gain = _box_and_gain(args)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, refine_steps=args.refine, extra_slots=args.extra_slots,
-                              progress=not args.quiet)
+                              search_rounds=args.search, progress=not args.quiet)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
@@ -481,6 +487,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--limit", type=int, help="evaluate only the first N scenes")
     ev.add_argument("--json", help="also write the results here")
     ev.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the best-explaining slots (beyond the paper)")
+    ev.add_argument("--search", type=int, default=0, metavar="R",
+                    help="search each slot's scale, position and yaw against the RGB-D for R rounds before any refinement (beyond the paper; 3 is the measured setting)")
     ev.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K gradient steps per scene (beyond the paper)")
     ev.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default: RefineConfig's, 0.01)")
     ev.add_argument("--refine-pose-lr-scale", type=float,
@@ -497,6 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
     rc.add_argument("--any-camera", action="store_true", help="allow a camera that differs from training (real photos)")
     rc.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the slots that best explain the RGB(-D)")
+    rc.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw for R rounds (against depth too, when the data has it)")
     rc.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K steps (against depth too, when the data has it)")
     rc.set_defaults(func=cmd_reconstruct)
 
@@ -566,6 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--min-pixels", type=int, default=25, help="visible pixels for an object to count as found")
     rr.add_argument("--format", default="ply", choices=["ply", "obj", "glb"], help="mesh format")
     rr.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the slots that best explain each photo")
+    rr.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw against each photo for R rounds (colour only)")
     rr.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents against each photo for K steps (image term only)")
     rr.add_argument("--quiet", action="store_true")
     rr.set_defaults(func=cmd_real_reconstruct)

@@ -9,6 +9,8 @@ An object is "found" when at least ``min_pixels`` pixels of it are visible in th
 photo (image term only: a photo has no depth) before anything is written; the summary records the
 render's PSNR against the prepared photo before and after. ``extra_slots > 0`` decodes that many more
 encoder steps and keeps the slots whose composition best matches the photo (``prismonet.model.select``).
+``search_rounds > 0`` then searches each slot's scale, position and yaw against the photo
+(``prismonet.model.search``, colour only), before any refinement.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ def found_objects(instance: torch.Tensor, num_slots: int, min_pixels: int = MIN_
 def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | Path = "shipped", calibration: str | Path | None = None,
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
-                       resolution: int = 40, refine_steps: int = 0, extra_slots: int = 0,
+                       resolution: int = 40, refine_steps: int = 0, extra_slots: int = 0, search_rounds: int = 0,
                        progress: bool = True) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``)."""
     from tqdm import tqdm
@@ -41,6 +43,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from prismonet.evaluation.metrics import image_metrics
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
+    from prismonet.model.search import SearchConfig, search_latents
     from prismonet.model.select import check_extra_slots, decode_overcomplete
     from prismonet.scene import LatentScene
     from prismonet.scene.export import scene_mesh, write_mesh
@@ -49,6 +52,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from realdata.pipeline import prepare_photos
 
     refine_cfg = RefineConfig(refine_steps)  # validates the step count before any work
+    search_cfg = SearchConfig(rounds=search_rounds)
     check_extra_slots(extra_slots)
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
@@ -70,6 +74,9 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         with torch.no_grad():
             o = decode_overcomplete(net, b, extra=extra_slots, use_depth=False, w_image=loss_cfg.w_image)
         psnr = {"encoder": image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]}
+        if search_rounds > 0:
+            o = search_latents(net, o, b, search_cfg, use_depth=False)
+            psnr["searched"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
         if refine_steps > 0:
             o = refine(net, o, b, loss_cfg, refine_cfg, use_depth=False)
             psnr["refined"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
@@ -89,7 +96,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "calibrated ground pose" if has_ground else "model's training camera (assumed)",
                         "finite": finite, "psnr": psnr, "refine_steps": refine_steps,
-                        "extra_slots": extra_slots, "prepare": rec})
+                        "extra_slots": extra_slots, "search_rounds": search_rounds, "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 

@@ -47,13 +47,15 @@ def check_compatible(model, info: dict, ds) -> None:
 
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
-                   refine_cfg=None, loss_cfg=None, extra_slots: int = 0) -> dict:
+                   refine_cfg=None, loss_cfg=None, extra_slots: int = 0, search_cfg=None) -> dict:
     """Run the model over a dataset split and compute the paper's measures.
 
     ``refine_cfg``: a ``RefineConfig`` to refine the latents at test time (with ``loss_cfg``, the
     losses to refine on; default: ``LossConfig()``). The time per scene is reported either way.
     ``extra_slots``: decode that many more encoder steps and keep the best ``num_slots`` of them
     (``prismonet.model.select``), before any refinement.
+    ``search_cfg``: a ``SearchConfig`` to search each slot's scale, position and yaw against the
+    RGB-D after decoding and before any refinement (``prismonet.model.search``).
     ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
     steps that were not kept count as not visible), with each step's mean position error and median
     predicted / true scale over its matched objects.
@@ -64,6 +66,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     from prismonet.model.losses import LossConfig
     from prismonet.model.refine import refine
+    from prismonet.model.search import search_latents
     from prismonet.model.select import check_extra_slots, decode_overcomplete
 
     check_extra_slots(extra_slots)
@@ -78,6 +81,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
         out = decode_overcomplete(model, b, N, extra_slots, w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth)
+        if search_cfg is not None:
+            out = search_latents(model, out, b, search_cfg)
         if refine_cfg is not None and refine_cfg.steps > 0:
             out = refine(model, out, b, loss_cfg, refine_cfg)
         seconds += time.perf_counter() - t0
@@ -119,6 +124,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         st["scale_ratio"] = float(np.median(ratio_arr[sel])) if sel.any() else math.nan
     results["per_step"] = steps
     results["refine_steps"] = 0 if refine_cfg is None else refine_cfg.steps
+    results["search_rounds"] = 0 if search_cfg is None else search_cfg.rounds
     results["seconds_per_scene"] = seconds / max(n, 1)
     return results
 

@@ -1,0 +1,119 @@
+"""Test-time pose search: coordinate search on each slot's scale, position and yaw."""
+
+import math
+
+import pytest
+import torch
+
+from prismonet.assets import shipped_samples
+from prismonet.data.dataset import SceneDataset
+from prismonet.model.io import load_model
+from prismonet.model.refine import render_latents
+from prismonet.model.search import SearchConfig, fit_score, search_latents
+from prismonet.render import SceneParams
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    model, _ = load_model("shipped")
+    model.eval()
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    return model, b, out
+
+
+def _rendered_target(model, b, params, bg):
+    """``b`` with its RGB-D replaced by the render of ``params``: a scene the search can fit exactly."""
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        o = render_latents(model, params, bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    b.rgb, b.depth = o.composite.image.clone(), torch.where(o.composite.depth.isfinite(), o.composite.depth, 0.0)
+    return o
+
+
+def _with(params: SceneParams, **changes) -> SceneParams:
+    fields = {k: getattr(params, k) for k in ("z_sh", "z_tex", "position", "cos_sin", "scale", "axis", "active")}
+    fields.update(changes)
+    return SceneParams(**fields)
+
+
+def test_fit_score_by_hand():
+    rgb = torch.zeros(1, 3, 2, 2)
+    image = rgb.clone()
+    image[0, :, 0, 0] = 0.5  # one pixel off by 0.5 in all three channels: 0.75 / 4 pixels
+    depth, target = torch.ones(1, 1, 2, 2), torch.ones(1, 1, 2, 2)
+    target[0, 0, 1, 1] = 3.0  # one pixel off by 2: 2 / 4 pixels
+    assert fit_score(image, depth, rgb, target).item() == pytest.approx(0.75 / 4 + 0.1 * 2 / 4)
+    assert fit_score(image, depth, rgb, None).item() == pytest.approx(0.75 / 4)
+    assert fit_score(image, depth, rgb, target, w_image=0.0, w_depth=1.0).item() == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("kind", ["scale", "shift", "yaw"])
+def test_search_recovers_a_known_perturbation(shipped, kind):
+    """Render the model's own latents as the target, perturb every slot by exactly one trial step,
+    and a search with that one trial must undo it: the scene is then fitted exactly."""
+    model, _, out = shipped
+    p, bg = out.latents.params, out.latents.bg_color
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    truth = _with(p, scale=p.scale.clamp(max=0.8))  # room to grow within the encoder's bound (0.9)
+    target = _rendered_target(model, b, truth, bg)
+    a = math.radians(30.0)
+    rot = torch.tensor([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])  # rotates by -30 degrees
+    start_params, cfg = {
+        "scale": (_with(truth, scale=truth.scale / 1.1), SearchConfig(scales=(1.1,), shifts=(), yaws=(), rounds=1)),
+        "shift": (_with(truth, position=truth.position - torch.tensor([0.2, 0.0, 0.0])), SearchConfig(scales=(), shifts=(0.2,), yaws=(), rounds=1)),
+        "yaw": (_with(truth, cos_sin=truth.cos_sin @ rot.T), SearchConfig(scales=(), shifts=(), yaws=(30.0,), rounds=1)),
+    }[kind]
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        start = render_latents(model, start_params, bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    visible = torch.stack([(target.composite.instance == k + 1).flatten(1).any(1) for k in range(3)], 1)
+    assert bool(visible.all()), "every slot must be visible for its perturbation to be observable"
+    found = search_latents(model, start, b, cfg)
+    q = found.latents.params
+    assert torch.allclose(q.scale, truth.scale, atol=1e-5)
+    assert torch.allclose(q.position, truth.position, atol=1e-5)
+    assert torch.allclose(q.cos_sin, truth.cos_sin, atol=1e-5)
+    assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)
+    assert torch.equal(found.composite.instance, target.composite.instance)
+
+
+def test_search_never_fits_worse_and_keeps_everything_else(shipped):
+    model, b, out = shipped
+    found = search_latents(model, out, b, SearchConfig(rounds=2))
+    before = fit_score(out.composite.image, out.composite.depth, b.rgb, b.depth)
+    after = fit_score(found.composite.image, found.composite.depth, b.rgb, b.depth)
+    assert bool((after <= before).all()) and bool((after < before).any())
+    p, q = out.latents.params, found.latents.params
+    assert torch.equal(q.z_sh, p.z_sh) and torch.equal(q.z_tex, p.z_tex)
+    assert torch.equal(q.position[..., 2], p.position[..., 2])  # positions move in the ground plane only
+    assert bool((q.scale <= model.cfg.scale_range[1]).all())
+    assert torch.allclose(q.cos_sin.norm(dim=-1), p.cos_sin.norm(dim=-1), atol=1e-5)  # yaw trials rotate, never rescale
+    # the composed render is the render of the searched latents
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        again = render_latents(model, q, found.latents.bg_color, b.K, b.T_world_cam, b.ground_z, H, W)
+    assert torch.allclose(again.composite.image, found.composite.image, atol=1e-5)
+    assert search_latents(model, out, b, SearchConfig(rounds=0)) is out
+
+
+@pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0)])
+def test_search_config_rejects_bad_values(bad):
+    with pytest.raises(ValueError, match="search"):
+        SearchConfig(**bad)
+
+
+def test_evaluation_and_cli_with_search(tmp_path, capsys):
+    from prismonet.cli import main
+    from prismonet.evaluation.evaluate import evaluate_model
+
+    model, _ = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    r = evaluate_model(model, ds, batch_size=4, limit=4, progress=False, search_cfg=SearchConfig(rounds=1))
+    assert r["search_rounds"] == 1 and r["scenes"] == 4
+    data = str(shipped_samples())
+    assert main(["reconstruct", "shipped", data, "--count", "1", "--search", "1", "--out", str(tmp_path / "s")]) == 0
+    assert (tmp_path / "s" / "0.json").exists()
+    assert main(["evaluate", "shipped", data, "--search", "-1", "--quiet"]) != 0
+    assert "search" in capsys.readouterr().err
