@@ -105,7 +105,8 @@ def cmd_demo(args) -> int:
     from prismonet.demo import format_demo_table, run_demo
 
     t0 = time.perf_counter()
-    result = run_demo(args.out, args.scenes, args.model, args.data, args.refine, progress=not args.quiet)
+    result = run_demo(args.out, args.scenes, args.model, args.data, args.refine, progress=not args.quiet,
+                      search_rounds=args.search, color_fit_steps=args.fit_color)
     print(format_demo_table(result))
     out = Path(args.out)
     print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "
@@ -240,6 +241,7 @@ def cmd_evaluate(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_steps, format_table
     from prismonet.model.io import load_model, training_loss_config
     from prismonet.model.refine import RefineConfig
+    from prismonet.model.color_fit import ColorFitConfig
     from prismonet.model.search import SearchConfig
 
     model, info = load_model(args.checkpoint, num_slots=args.objects)
@@ -247,15 +249,16 @@ def cmd_evaluate(args) -> int:
     check_compatible(model, info, ds)
     overrides = {"lr": args.refine_lr, "pose_lr_scale": args.refine_pose_lr_scale}
     refine_cfg = RefineConfig(args.refine, **{k: v for k, v in overrides.items() if v is not None})  # validates even with K = 0
-    search_cfg = SearchConfig(rounds=args.search)
+    search_cfg = SearchConfig(rounds=args.search, w_depth=0.0 if args.search_color_only else SearchConfig.w_depth)
+    color_cfg = ColorFitConfig(args.fit_color)
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
                              refine_cfg=refine_cfg, loss_cfg=training_loss_config(info), extra_slots=args.extra_slots,
-                             search_cfg=search_cfg)
+                             search_cfg=search_cfg, color_cfg=color_cfg)
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects, "
           f"{results['extra_slots']} extra slots, {results['search_rounds']} search rounds, {results['refine_steps']} refinement steps, "
-          f"{1000 * results['seconds_per_scene']:.1f} ms per scene)")
+          f"{results['color_fit_steps']} colour-fit steps, {1000 * results['seconds_per_scene']:.1f} ms per scene)")
     print("\nper encoder step:\n" + format_steps(results))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
@@ -355,6 +358,7 @@ def cmd_reconstruct(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
+    from prismonet.model.color_fit import ColorFitConfig, fit_colors
     from prismonet.model.search import SearchConfig, search_latents
     from prismonet.model.select import check_extra_slots, decode_overcomplete
     from prismonet.scene import LatentScene
@@ -362,6 +366,7 @@ def cmd_reconstruct(args) -> int:
 
     refine_cfg = RefineConfig(args.refine)
     search_cfg = SearchConfig(rounds=args.search)
+    color_cfg = ColorFitConfig(args.fit_color)
     check_extra_slots(args.extra_slots)
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     loss_cfg = training_loss_config(info)
@@ -384,6 +389,7 @@ def cmd_reconstruct(args) -> int:
             out = search_latents(model, out, b, search_cfg, use_depth=has_depth)
             if args.refine > 0:
                 out = refine(model, out, b, loss_cfg, refine_cfg, use_depth=has_depth)
+            out = fit_colors(model, out, b, color_cfg)
             for j, i in enumerate(idx):
                 name = ds.names[i]
                 fig = decomposition_figure(b.rgb, out, j, out_dir / f"{name}.png", b.depth if has_depth else None)
@@ -399,7 +405,7 @@ def cmd_real_reconstruct(args) -> int:
     box, gain = _box_and_gain(args)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, refine_steps=args.refine, extra_slots=args.extra_slots,
-                              search_rounds=args.search, progress=not args.quiet)
+                              search_rounds=args.search, color_fit_steps=args.fit_color, progress=not args.quiet)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
@@ -425,6 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
     demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes")
     demo.add_argument("--refine", type=int, default=0, metavar="K", help="test-time refinement steps per scene")
+    demo.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw against the RGB-D for R rounds before any refinement")
+    demo.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     demo.add_argument("--quiet", action="store_true")
     demo.set_defaults(func=cmd_demo)
 
@@ -489,6 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the best-explaining slots (beyond the paper)")
     ev.add_argument("--search", type=int, default=0, metavar="R",
                     help="search each slot's scale, position and yaw against the RGB-D for R rounds before any refinement (beyond the paper; 3 is the measured setting)")
+    ev.add_argument("--search-color-only", action="store_true", help="score the search on colour alone, as if the input had no depth (the paper's test-time input)")
+    ev.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     ev.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K gradient steps per scene (beyond the paper)")
     ev.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default: RefineConfig's, 0.01)")
     ev.add_argument("--refine-pose-lr-scale", type=float,
@@ -506,6 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--any-camera", action="store_true", help="allow a camera that differs from training (real photos)")
     rc.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the slots that best explain the RGB(-D)")
     rc.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw for R rounds (against depth too, when the data has it)")
+    rc.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     rc.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K steps (against depth too, when the data has it)")
     rc.set_defaults(func=cmd_reconstruct)
 
@@ -576,6 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--format", default="ply", choices=["ply", "obj", "glb"], help="mesh format")
     rr.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the slots that best explain each photo")
     rr.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw against each photo for R rounds (colour only)")
+    rr.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     rr.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents against each photo for K steps (image term only)")
     rr.add_argument("--quiet", action="store_true")
     rr.set_defaults(func=cmd_real_reconstruct)

@@ -10,7 +10,8 @@ photo (image term only: a photo has no depth) before anything is written; the su
 render's PSNR against the prepared photo before and after. ``extra_slots > 0`` decodes that many more
 encoder steps and keeps the slots whose composition best matches the photo (``prismonet.model.select``).
 ``search_rounds > 0`` then searches each slot's scale, position and yaw against the photo
-(``prismonet.model.search``, colour only), before any refinement.
+(``prismonet.model.search``, colour only), before any refinement. ``color_fit_steps > 0`` fits the
+texture latents and background colour to the photo last, geometry held (``prismonet.model.color_fit``).
 """
 
 from __future__ import annotations
@@ -35,12 +36,13 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, refine_steps: int = 0, extra_slots: int = 0, search_rounds: int = 0,
-                       progress: bool = True) -> list[dict]:
+                       color_fit_steps: int = 0, progress: bool = True) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``)."""
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.metrics import image_metrics
+    from prismonet.model.color_fit import ColorFitConfig, fit_colors
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
     from prismonet.model.refine import RefineConfig, refine
     from prismonet.model.search import SearchConfig, search_latents
@@ -53,6 +55,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
 
     refine_cfg = RefineConfig(refine_steps)  # validates the step count before any work
     search_cfg = SearchConfig(rounds=search_rounds)
+    color_cfg = ColorFitConfig(color_fit_steps)
     check_extra_slots(extra_slots)
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
@@ -80,6 +83,9 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         if refine_steps > 0:
             o = refine(net, o, b, loss_cfg, refine_cfg, use_depth=False)
             psnr["refined"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
+        if color_fit_steps > 0:
+            o = fit_colors(net, o, b, color_cfg)
+            psnr["color_fit"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
         name = ds.names[i]
         rec = by_name[name]
         photo = load_photo(rec["photo"])
@@ -96,7 +102,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "calibrated ground pose" if has_ground else "model's training camera (assumed)",
                         "finite": finite, "psnr": psnr, "refine_steps": refine_steps,
-                        "extra_slots": extra_slots, "search_rounds": search_rounds, "prepare": rec})
+                        "extra_slots": extra_slots, "search_rounds": search_rounds,
+                        "color_fit_steps": color_fit_steps, "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 

@@ -1,8 +1,13 @@
-"""Sweep settings of the test-time pose search (``prismonet.model.search``) on a dataset split.
+"""Sweep settings of the test-time pose search (``prismonet.model.search``) and colour fit
+(``prismonet.model.color_fit``) on a dataset split.
 
-    python3 scripts/search_sweep.py data/clevr3 --split val --limit 512 "rounds=0" "shifts=(),yaws=(),rounds=1,decay=1"
+    python3 scripts/search_sweep.py data/clevr3 --split val --limit 512 "rounds=0" "shifts=(),yaws=(),rounds=1"
+    python3 scripts/search_sweep.py data/clevr3 --split test --limit 128 --passes 3 "rounds=0" "" "fit_color=50"
 
-Each argument is a set of ``SearchConfig`` fields (Python literals); one line of measures per setting.
+Each argument is a set of ``SearchConfig`` fields (Python literals), plus optionally ``fit_color=K``
+and ``refine=K`` (default: ``--fit-color`` and ``--refine``); one JSON line of measures per setting
+and pass. With ``--passes N`` the settings run N times interleaved (all settings, then all again) in
+one process, and a last table gives each setting's median time per scene.
 """
 
 from __future__ import annotations
@@ -10,11 +15,13 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import statistics
 
 import torch
 
 from prismonet.data.dataset import SceneDataset
 from prismonet.evaluation.evaluate import evaluate_model
+from prismonet.model.color_fit import ColorFitConfig
 from prismonet.model.io import load_model, training_loss_config
 from prismonet.model.refine import RefineConfig
 from prismonet.model.search import SearchConfig
@@ -35,16 +42,32 @@ def main() -> None:
     ap.add_argument("--checkpoint", default="shipped")
     ap.add_argument("--split", default="val")
     ap.add_argument("--limit", type=int, default=512)
-    ap.add_argument("--refine", type=int, default=0)
+    ap.add_argument("--refine", type=int, default=0, metavar="K", help="refinement steps after the search")
+    ap.add_argument("--fit-color", type=int, default=0, metavar="K", help="colour-fit steps after the search and refinement")
+    ap.add_argument("--passes", type=int, default=1, help="run every setting this many times, interleaved")
     args = ap.parse_args()
-    cfgs = [SearchConfig(**parse_setting(s)) for s in args.settings]  # validate all before running any
+    runs = []
+    for text in args.settings:  # validate all before running any
+        fields = parse_setting(text)
+        refine, fit = fields.pop("refine", args.refine), fields.pop("fit_color", args.fit_color)
+        runs.append((text, SearchConfig(**fields), RefineConfig(refine), ColorFitConfig(fit)))
     model, info = load_model(args.checkpoint)
     ds = SceneDataset(args.data, split=args.split)
-    for text, cfg in zip(args.settings, cfgs):
-        with torch.no_grad():
-            r = evaluate_model(model, ds, limit=args.limit, progress=False, loss_cfg=training_loss_config(info),
-                               refine_cfg=RefineConfig(args.refine), search_cfg=cfg)
-        print(json.dumps({"setting": text, "refine": args.refine, **{k: round(r[k], 4) for k in KEYS}}), flush=True)
+    times: dict[str, list[float]] = {text: [] for text, *_ in runs}
+    for p in range(args.passes):
+        for text, search_cfg, refine_cfg, color_cfg in runs:
+            with torch.no_grad():
+                r = evaluate_model(model, ds, limit=args.limit, progress=False, loss_cfg=training_loss_config(info),
+                                   refine_cfg=refine_cfg, search_cfg=search_cfg, color_cfg=color_cfg)
+            times[text].append(r["seconds_per_scene"])
+            print(json.dumps({"setting": text, "pass": p + 1, "refine": refine_cfg.steps, "fit_color": color_cfg.steps,
+                              **{k: round(r[k], 4) for k in KEYS}}), flush=True)
+    if args.passes > 1:
+        base = statistics.median(times[runs[0][0]])
+        print(f"\n| setting | ms per scene ({args.passes} passes) | median | vs {runs[0][0]!r} |\n|---|---|---|---|")
+        for text, ts in times.items():
+            med = statistics.median(ts)
+            print(f"| {text or '(default)'} | {' / '.join(f'{1000 * t:.0f}' for t in ts)} | {1000 * med:.0f} | {med / base:.1f}x |")
 
 
 if __name__ == "__main__":

@@ -11,3 +11,18 @@ def rng():
 @pytest.fixture
 def gen():
     return torch.Generator().manual_seed(1234)
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped model, the first four shipped test scenes, and the model's output on them."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+
+    model, _ = load_model("shipped")
+    model.eval()
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    return model, b, out

@@ -18,6 +18,16 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| **mean** |" in printed and str(out / "metrics.json") in printed
     assert main(["demo", "--out", str(out), "--scenes", "1", "--quiet"]) == 0  # re-runnable over its own output
+    assert json.loads((out / "metrics.json").read_text())["search_rounds"] == 0
+
+
+def test_demo_with_pose_search_records_it(tmp_path):
+    import json
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--scenes", "1", "--search", "1", "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["search_rounds"] == 1 and len(metrics["scenes"]) == 1 and (out / "scene_000.png").is_file()
 
 
 def test_data_commands(tmp_path, capsys):
@@ -41,6 +51,7 @@ def test_data_commands(tmp_path, capsys):
         (["data", "clevr", "--out", "{tmp}"], "output folder is not empty"),
         (["data", "sheet", "{tmp}/nothing", "--out", "{tmp}/s.png"], "no such dataset folder"),
         (["data", "verify", "{tmp}"], "not a packed dataset"),
+        (["demo", "--out", "{tmp}/d", "--search", "-1"], "rounds and weights must be non-negative"),
     ],
 )
 def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys, argv, message):

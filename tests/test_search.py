@@ -13,16 +13,6 @@ from prismonet.model.search import SearchConfig, fit_score, search_latents
 from prismonet.render import SceneParams
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    model, _ = load_model("shipped")
-    model.eval()
-    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
-    with torch.no_grad():
-        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
-    return model, b, out
-
-
 def _rendered_target(model, b, params, bg):
     """``b`` with its RGB-D replaced by the render of ``params``: a scene the search can fit exactly."""
     H, W = b.rgb.shape[-2:]
@@ -117,3 +107,16 @@ def test_evaluation_and_cli_with_search(tmp_path, capsys):
     assert (tmp_path / "s" / "0.json").exists()
     assert main(["evaluate", "shipped", data, "--search", "-1", "--quiet"]) != 0
     assert "search" in capsys.readouterr().err
+
+
+def test_color_only_search_ignores_depth(shipped):
+    """``w_depth = 0`` scores colour alone: the same result as a search told the input has no depth,
+    even when the depth it is given is garbage."""
+    model, b, out = shipped
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    b.depth = torch.full_like(b.depth, 1e3)
+    a = search_latents(model, out, b, SearchConfig(rounds=1, w_depth=0.0))
+    c = search_latents(model, out, b, SearchConfig(rounds=1), use_depth=False)
+    assert torch.equal(a.latents.params.scale, c.latents.params.scale)
+    assert torch.equal(a.latents.params.position, c.latents.params.position)
+    assert torch.equal(a.composite.instance, c.composite.instance)

@@ -47,7 +47,8 @@ def check_compatible(model, info: dict, ds) -> None:
 
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
-                   refine_cfg=None, loss_cfg=None, extra_slots: int = 0, search_cfg=None) -> dict:
+                   refine_cfg=None, loss_cfg=None, extra_slots: int = 0, search_cfg=None,
+                   color_cfg=None) -> dict:
     """Run the model over a dataset split and compute the paper's measures.
 
     ``refine_cfg``: a ``RefineConfig`` to refine the latents at test time (with ``loss_cfg``, the
@@ -56,6 +57,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     (``prismonet.model.select``), before any refinement.
     ``search_cfg``: a ``SearchConfig`` to search each slot's scale, position and yaw against the
     RGB-D after decoding and before any refinement (``prismonet.model.search``).
+    ``color_cfg``: a ``ColorFitConfig`` to fit texture latents and background colour to the image
+    last, with geometry held (``prismonet.model.color_fit``); instance and depth measures unchanged.
     ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
     steps that were not kept count as not visible), with each step's mean position error and median
     predicted / true scale over its matched objects.
@@ -64,6 +67,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     from tqdm import tqdm
 
+    from prismonet.model.color_fit import fit_colors
     from prismonet.model.losses import LossConfig
     from prismonet.model.refine import refine
     from prismonet.model.search import search_latents
@@ -85,6 +89,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
             out = search_latents(model, out, b, search_cfg)
         if refine_cfg is not None and refine_cfg.steps > 0:
             out = refine(model, out, b, loss_cfg, refine_cfg)
+        if color_cfg is not None and color_cfg.steps > 0:
+            out = fit_colors(model, out, b, color_cfg)
         seconds += time.perf_counter() - t0
         pi = out.composite.instance.numpy()
         gi = b.instance.numpy()
@@ -125,6 +131,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["per_step"] = steps
     results["refine_steps"] = 0 if refine_cfg is None else refine_cfg.steps
     results["search_rounds"] = 0 if search_cfg is None else search_cfg.rounds
+    results["color_fit_steps"] = 0 if color_cfg is None else color_cfg.steps
     results["seconds_per_scene"] = seconds / max(n, 1)
     return results
 

@@ -1,5 +1,5 @@
-"""Test-time pose search (beyond the paper): gradient-free coordinate search on each slot's scale
-and ground-plane position against the input RGB-D.
+"""Test-time pose search (beyond the paper): gradient-free coordinate search on each slot's scale,
+ground-plane position and yaw against the input RGB-D.
 
 The encoder's slots come out too small, most of all at its last step (first 512 validation scenes:
 the median predicted / true scale of matched objects is 0.86 at step 3), and a shrunken object fails
@@ -79,14 +79,14 @@ def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch
 
 @torch.no_grad()
 def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchConfig(), use_depth: bool = True) -> ModelOutput:
-    """``out`` (the model's output on ``batch``) with each slot's scale and position improved by
+    """``out`` (the model's output on ``batch``) with each slot's scale, position and yaw improved by
     coordinate search; every scene's score is at most the one it started with."""
     if cfg.rounds == 0 or cfg.trials_per_slot == 0:
         return out
     p = out.latents.params
     B, N = p.scale.shape
     H, W = batch.rgb.shape[-2:]
-    target_depth = batch.depth if use_depth else None
+    target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
     bg = out.latents.bg_color
     depth, mask, color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
     scale, position, cos_sin = p.scale.clone(), p.position.clone(), p.cos_sin.clone()
