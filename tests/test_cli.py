@@ -17,17 +17,20 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
     assert len(metrics["scenes"]) == 2 and 0 <= metrics["mean"]["AP0.5"] <= 1 and metrics["mean"]["PSNR"] > 10
     printed = capsys.readouterr().out
     assert "| **mean** |" in printed and str(out / "metrics.json") in printed
+    assert "encoder, then 3 pose-search rounds, 50 colour-fit steps" in printed
     assert main(["demo", "--out", str(out), "--scenes", "1", "--quiet"]) == 0  # re-runnable over its own output
-    assert json.loads((out / "metrics.json").read_text())["search_rounds"] == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["search_rounds"], metrics["color_fit_steps"]) == (3, 50)
 
 
-def test_demo_with_pose_search_records_it(tmp_path):
+def test_demo_feed_forward_as_the_paper(tmp_path, capsys):
     import json
 
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--scenes", "1", "--search", "1", "--quiet"]) == 0
+    assert main(["demo", "--out", str(out), "--scenes", "1", "--search", "0", "--fit-color", "0", "--quiet"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["search_rounds"] == 1 and len(metrics["scenes"]) == 1 and (out / "scene_000.png").is_file()
+    assert (metrics["search_rounds"], metrics["color_fit_steps"]) == (0, 0) and (out / "scene_000.png").is_file()
+    assert "encoder only, as the paper" in capsys.readouterr().out
 
 
 def test_data_commands(tmp_path, capsys):
