@@ -48,9 +48,12 @@ def main() -> None:
     args = ap.parse_args()
     runs = []
     for text in args.settings:  # validate all before running any
-        fields = parse_setting(text)
-        refine, fit = fields.pop("refine", args.refine), fields.pop("fit_color", args.fit_color)
-        runs.append((text, SearchConfig(**fields), RefineConfig(refine), ColorFitConfig(fit)))
+        try:
+            fields = parse_setting(text)
+            refine, fit = fields.pop("refine", args.refine), fields.pop("fit_color", args.fit_color)
+            runs.append((text, SearchConfig(**fields), RefineConfig(refine), ColorFitConfig(fit)))
+        except (SyntaxError, ValueError, TypeError) as e:
+            ap.error(f"setting {text!r}: {str(e).splitlines()[0]}")
     model, info = load_model(args.checkpoint)
     ds = SceneDataset(args.data, split=args.split)
     times: dict[str, list[float]] = {text: [] for text, *_ in runs}

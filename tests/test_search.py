@@ -9,7 +9,8 @@ from prismonet.assets import shipped_samples
 from prismonet.data.dataset import SceneDataset
 from prismonet.model.io import load_model
 from prismonet.model.refine import render_latents
-from prismonet.model.search import SearchConfig, fit_score, search_latents
+from prismonet.model.fit_score import fit_score
+from prismonet.model.search import SearchConfig, search_latents
 from prismonet.render import SceneParams
 
 
@@ -120,3 +121,18 @@ def test_color_only_search_ignores_depth(shipped):
     assert torch.equal(a.latents.params.scale, c.latents.params.scale)
     assert torch.equal(a.latents.params.position, c.latents.params.position)
     assert torch.equal(a.composite.instance, c.composite.instance)
+
+
+@pytest.mark.parametrize("setting, message", [("rounds=-1", "rounds and weights must be non-negative"),
+                                              ("scales=(1.1,", "setting 'scales=(1.1,'"),
+                                              ("radius=2", "unexpected keyword argument 'radius'")])
+def test_sweep_script_refuses_a_bad_setting_in_one_line(setting, message):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "search_sweep.py"
+    r = subprocess.run([sys.executable, str(script), "no_data_needed", setting], capture_output=True, text=True)
+    assert r.returncode == 2
+    last = r.stderr.strip().splitlines()[-1]
+    assert message in last and "Traceback" not in r.stderr

@@ -3,7 +3,7 @@ background colour only, against the input image, with every object's shape, pose
 
 Geometry is fixed, so the scene is ray-cast once: the surface points that win the z-buffer stay
 where they are, and each step only re-evaluates the texture field at them (``shade_winners``),
-which costs a small fraction of a render. Instance masks and depth come out exactly as they went in;
+which costs a small fraction of a render; the output recolours the same hits (``shade_objects``). Instance masks and depth come out exactly as they went in;
 only the colours change. The objective is the unblurred colour error (summed over channels, mean
 over pixels), the quantity PSNR measures. Adam does not descend monotonically, so each scene keeps
 the step at which its error was lowest: a scene's error never rises above where it started.
@@ -15,10 +15,10 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from prismonet.model.prismonet import ModelOutput
-from prismonet.model.refine import render_latents
-from prismonet.render.composite import zbuffer
-from prismonet.render.renderer import render_objects, shade_winners
+from prismonet.model.fit_score import fit_score
+from prismonet.model.prismonet import ModelOutput, SceneLatents
+from prismonet.render.composite import composite, zbuffer
+from prismonet.render.renderer import render_objects, shade_objects, shade_winners
 
 
 @dataclass(frozen=True)
@@ -35,8 +35,8 @@ class ColorFitConfig:
 
 
 def color_error(image: torch.Tensor, rgb: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` squared colour error summed over channels, mean over pixels."""
-    return ((image - rgb) ** 2).sum(1).mean((1, 2))
+    """``(B,)`` squared colour error summed over channels, mean over pixels: ``fit_score`` without depth."""
+    return fit_score(image, None, rgb, None)
 
 
 def fit_colors(model, out: ModelOutput, batch, cfg: ColorFitConfig = ColorFitConfig()) -> ModelOutput:
@@ -50,8 +50,6 @@ def fit_colors(model, out: ModelOutput, batch, cfg: ColorFitConfig = ColorFitCon
     with torch.no_grad():
         obj = render_objects(model.sdf_fn, None, p, batch.K, batch.T_world_cam, H, W, model.render_settings())
         winner, hit = zbuffer(obj.depth, obj.mask)
-    x_obj = obj.hit_x_obj.detach()
-    obj = replace(obj, hit_x_obj=x_obj)
     z = p.z_tex.detach().clone().requires_grad_(True)
     bg = out.latents.bg_color.detach().clone().requires_grad_(True)
     best_z, best_bg = z.detach().clone(), bg.detach().clone()
@@ -71,7 +69,9 @@ def fit_colors(model, out: ModelOutput, batch, cfg: ColorFitConfig = ColorFitCon
             opt.step()
             with torch.no_grad():
                 bg.clamp_(0.0, 1.0)
-    with torch.no_grad():
-        new = render_latents(model, replace(p, z_tex=best_z), best_bg, batch.K, batch.T_world_cam, batch.ground_z, H, W)
-    new.slot_steps = out.slot_steps
-    return new
+    with torch.no_grad():  # recolour the same hits: no second ray cast
+        params = replace(p, z_tex=best_z)
+        color = shade_objects(model.color_fn, params, obj)
+        comp = composite(obj.depth, obj.mask, color, best_bg, out.bg_depth)
+    return ModelOutput(SceneLatents(params, best_bg), comp, obj.depth, obj.mask, color, out.bg_depth, obj.soft_mask,
+                       slot_steps=out.slot_steps)

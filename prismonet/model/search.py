@@ -6,7 +6,7 @@ the median predicted / true scale of matched objects is 0.86 at step 3), and a s
 the IoU 0.5 test. Gradient refinement does not fix this reliably: its objective, the training loss,
 is the same one that taught the encoder to hedge. Here each slot in turn is re-rendered alone at a
 few trial scales (then positions), composed with the others by z-buffering, and scored with
-``select.subset_scores``' criterion (unblurred colour MSE + 0.1 x depth L1); a trial is kept per scene
+``fit_score`` (unblurred colour MSE + 0.1 x depth L1); a trial is kept per scene
 only when it lowers the score, so the search never makes the fit worse. Each trial costs one
 single-object render, no gradients.
 """
@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
+from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.render import SceneParams, composite, render_objects
 
@@ -45,17 +46,6 @@ class SearchConfig:
     @property
     def trials_per_slot(self) -> int:
         return len([s for s in self.scales if s != 1]) + 2 * len([d for d in self.shifts if d != 0]) + len([a for a in self.yaws if a != 0])
-
-
-def fit_score(image: torch.Tensor, depth: torch.Tensor, rgb: torch.Tensor, target_depth: torch.Tensor | None,
-              w_image: float = 1.0, w_depth: float = 0.1) -> torch.Tensor:
-    """``(B,)`` how badly a composed ``image (B, 3, H, W)`` and ``depth (B, 1, H, W)`` explain the
-    input (lower is better): ``w_image`` x mean squared colour error (summed over channels) +
-    ``w_depth`` x mean absolute depth error (only when ``target_depth`` is given)."""
-    s = w_image * ((image - rgb) ** 2).sum(1).mean((1, 2))
-    if target_depth is not None:
-        s = s + w_depth * (depth - target_depth).abs().mean((1, 2, 3))
-    return s
 
 
 def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch.Tensor, cos_sin: torch.Tensor):

@@ -16,6 +16,7 @@ import itertools
 
 import torch
 
+from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.render import SceneParams, composite
 
@@ -59,10 +60,7 @@ def subset_scores(out: ModelOutput, rgb: torch.Tensor, depth: torch.Tensor | Non
     scores = []
     for sub in subsets:
         c = composite(out.obj_depth[:, sub], out.obj_mask[:, sub], out.obj_color[:, sub], out.latents.bg_color, out.bg_depth)
-        s = w_image * ((c.image - rgb) ** 2).sum(1).mean((1, 2))
-        if depth is not None:
-            s = s + w_depth * (c.depth - depth).abs().mean((1, 2, 3))
-        scores.append(s)
+        scores.append(fit_score(c.image, c.depth, rgb, depth, w_image, w_depth))
     return torch.stack(scores, 1), subsets
 
 

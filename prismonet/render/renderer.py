@@ -169,12 +169,20 @@ def _object_render(params: SceneParams, color_fn: ColorFn | None, slot, pix, t_s
     n = B * Kslots * H * W
     depth = torch.full((n,), far_depth, dtype=t_star.dtype).index_put((flat,), t_star)
     mask = torch.zeros(n, dtype=torch.bool).index_put((flat,), torch.ones_like(flat, dtype=torch.bool))
-    color = None
+    out = ObjectRender(depth.reshape(B, Kslots, H, W), mask.reshape(B, Kslots, H, W), None, slot, pix, x_obj, stats)
     if color_fn is not None:
-        rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[slot], x_obj)
-        color = torch.zeros(n, 3, dtype=rgb.dtype).index_put((flat,), rgb)
-        color = color.reshape(B, Kslots, H, W, 3).permute(0, 1, 4, 2, 3)
-    return ObjectRender(depth.reshape(B, Kslots, H, W), mask.reshape(B, Kslots, H, W), color, slot, pix, x_obj, stats)
+        out.color = shade_objects(color_fn, params, out)
+    return out
+
+
+def shade_objects(color_fn: ColorFn, params: SceneParams, obj: ObjectRender) -> torch.Tensor:
+    """Per-object colours ``(B, K, 3, H, W)``: the texture field of ``params.z_tex`` at every hit of
+    ``obj`` (zero where an object is missed). With ``obj``'s own latents this is ``obj.color``; with
+    other texture latents it recolours the same geometry without casting a ray."""
+    B, Kslots, H, W = obj.depth.shape
+    rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[obj.hit_slot], obj.hit_x_obj)
+    color = torch.zeros(B * Kslots * H * W, 3, dtype=rgb.dtype).index_put((obj.hit_slot * (H * W) + obj.hit_pix,), rgb)
+    return color.reshape(B, Kslots, H, W, 3).permute(0, 1, 4, 2, 3)
 
 
 def render_objects(
