@@ -173,3 +173,40 @@ def test_shipped_clevr_prior_loads_and_reconstructs():
     assert report["min_iou"] > 0.95, report
     assert report["max_chamfer_l1"] < 0.03, report
     assert report["interpolation_nonempty"] == 1.0
+
+
+@pytest.mark.parametrize("skip", [None, 2])
+def test_nograd_path_is_the_same_function(skip):
+    """Without autograd the MLP runs in place on a flat buffer; it must compute exactly what the
+    autograd path computes (float64, latents shared per ray and per point, and a skip layer)."""
+    import prismonet.shapes.decoder as dec_mod
+    from prismonet.model.texture import TextureField
+
+    torch.manual_seed(0)
+    phi = SDFDecoder(SDFDecoderConfig(latent_dim=5, width=16, depth=4, skip_layer=skip)).double()
+    psi = TextureField(4, width=16).double()
+    cases = [(phi, torch.randn(7, 1, 5), torch.randn(7, 9, 3)),  # one latent per ray (the root search)
+             (phi, torch.randn(7, 9, 5), torch.randn(7, 9, 3)),  # one latent per point
+             (psi, torch.randn(11, 4), torch.randn(11, 3))]      # texture field at hits
+    for net, z, x in cases:
+        z, x = z.double(), x.double()
+        with torch.enable_grad():
+            ref = net(z, x)
+        with torch.no_grad():
+            fast = net(z, x)
+        assert fast.shape == ref.shape
+        assert torch.allclose(fast, ref, rtol=0, atol=1e-12)
+    # a latent that does not broadcast into the points' shape takes the general path
+    z, x = torch.randn(2, 3, 5).double(), torch.randn(3, 3).double()
+    with torch.no_grad():
+        assert phi._features_nograd(z, x) is None
+        assert torch.equal(phi(z, x), phi(z, x))
+    # and the switch for A/B benchmarks turns the fast path off
+    try:
+        dec_mod.INPLACE_NOGRAD = False
+        with torch.no_grad():
+            off = phi(cases[0][1].double(), cases[0][2].double())
+    finally:
+        dec_mod.INPLACE_NOGRAD = True
+    with torch.no_grad():
+        assert torch.allclose(off, phi(cases[0][1].double(), cases[0][2].double()), rtol=0, atol=1e-12)

@@ -1,0 +1,86 @@
+"""Choosing the number of compute threads from measured step times, for machines whose cores are shared.
+
+On the project's 2-core machines a training step with 2 OpenMP threads is the fastest when the
+machine is quiet (135 ms against 188 ms with 1 thread), and the slowest when another busy process
+shares the cores (555 ms against 217 ms): a spinning thread waits for its partner, which the other
+process has descheduled. A passive wait policy does not fix it (228 ms quiet, 284 ms loaded).
+BENCHMARKS.md, "Threads on a shared machine", has the table.
+
+``ThreadGovernor`` therefore measures instead of guessing: every ``period`` steps it times
+``probe`` real steps at each candidate thread count and keeps the fastest until the next probe, or
+probes again at once when a step takes far longer than the last probe said it would. Nothing is run
+twice: the probe steps are ordinary steps. The thread count changes float rounding (1 and 2 threads
+give gradients ~1e-7 apart), so a run that uses it is not bit-reproducible; fixed counts are.
+"""
+
+from __future__ import annotations
+
+import statistics
+from typing import Callable
+
+
+class ThreadGovernor:
+    """Picks, among ``candidates``, the thread count whose recent steps were fastest.
+
+    Call ``before_step()`` before each step (it sets the count) and ``after_step(seconds)`` after it.
+
+    Args:
+        candidates: thread counts to try, e.g. ``(1, 2)``.
+        period: steps between two probes.
+        probe: steps timed per candidate in a probe (the median is compared).
+        slow_factor: a step this many times slower than the chosen count's probe median starts a
+            new probe early (the machine's load changed).
+        set_threads: applies a count (``torch.set_num_threads`` by default; a test passes a fake).
+    """
+
+    def __init__(self, candidates: tuple[int, ...], period: int = 200, probe: int = 3, slow_factor: float = 2.0,
+                 set_threads: Callable[[int], None] | None = None) -> None:
+        if not candidates or any(c <= 0 for c in candidates):
+            raise ValueError(f"candidates must be positive thread counts, got {candidates}")
+        if period <= 0 or probe <= 0 or slow_factor <= 1:
+            raise ValueError(f"period and probe must be positive and slow_factor > 1, got {period}, {probe}, {slow_factor}")
+        if set_threads is None:
+            import torch
+
+            set_threads = torch.set_num_threads
+        self.candidates = tuple(dict.fromkeys(candidates))
+        self.period, self.probe, self.slow_factor = period, probe, slow_factor
+        self._set = set_threads
+        self._times: dict[int, list[float]] = {}
+        self._queue: list[int] = []  # the probe's remaining steps, one thread count each
+        self.choice = self.candidates[-1]
+        self._expected = float("inf")
+        self._since_probe = 0
+        self._current: int | None = None
+        self.history: list[tuple[int, dict[int, float]]] = []
+        """``(step index, {threads: median seconds})`` of every finished probe."""
+        self._steps = 0
+        self._start_probe()
+
+    def _start_probe(self) -> None:
+        self._times = {c: [] for c in self.candidates}
+        self._queue = [c for c in self.candidates for _ in range(self.probe)]
+
+    def before_step(self) -> int:
+        """Set (and return) the thread count for the next step."""
+        n = self._queue[0] if self._queue else self.choice
+        if n != self._current:
+            self._set(n)
+            self._current = n
+        return n
+
+    def after_step(self, seconds: float) -> None:
+        """Record the step just run (with the count ``before_step`` set)."""
+        self._steps += 1
+        if self._queue:
+            self._times[self._queue.pop(0)].append(seconds)
+            if not self._queue:
+                medians = {c: statistics.median(t) for c, t in self._times.items()}
+                self.choice = min(medians, key=medians.get)
+                self._expected = medians[self.choice]
+                self.history.append((self._steps, medians))
+                self._since_probe = 0
+            return
+        self._since_probe += 1
+        if self._since_probe >= self.period or seconds > self.slow_factor * self._expected:
+            self._start_probe()
