@@ -30,7 +30,8 @@ def test_perfect_prediction_gives_ap_ar_one():
     pred = gt.copy()
     pred[pred == 1] = 7  # ids need not agree
     m = detection_metrics(pred, gt)
-    assert m == {"AP0.5": 1.0, "AR0.5": 1.0, "F1_0.5": 1.0, "mAP": 1.0, "allObj": 1.0}
+    keys = ("AP0.5", "AR0.5", "F1_0.5", "mAP", "allObj")
+    assert m == {k + suffix: 1.0 for k in keys for suffix in ("", "_unfiltered")}
 
 
 def test_known_iou_cases():
@@ -56,6 +57,17 @@ def test_one_of_two_found_and_small_objects_ignored():
     assert m["AP0.5"] == 0.5 and m["AR0.5"] == 0.5 and m["F1_0.5"] == 0.5 and m["allObj"] == 0.0
     with pytest.raises(ValueError, match="at least 0.5"):
         scene_detection(pred, gt, 0.3)
+
+
+def test_unfiltered_counts_predicted_slivers():
+    gt = scene([(0, 10, 0, 10), (20, 30, 20, 30)])
+    pred = scene([(0, 10, 0, 10), (20, 30, 20, 30), (12, 16, 12, 16)])  # both found, plus a 16-px sliver
+    m = detection_metrics(pred[None], gt[None])
+    assert m["AP0.5"] == 1.0 and m["AR0.5"] == 1.0  # the sliver is under 25 px: ignored
+    assert m["AP0.5_unfiltered"] == pytest.approx(2 / 3) and m["AR0.5_unfiltered"] == 1.0
+    assert m["F1_0.5_unfiltered"] == pytest.approx(0.8) and m["allObj_unfiltered"] == 1.0
+    assert m["mAP_unfiltered"] == pytest.approx(2 / 3)
+    assert scene_detection(pred, gt, 0.5, pred_min_pixels=1)["n_pred"] == 3
 
 
 def test_ari_matches_scikit_learn():

@@ -1,0 +1,81 @@
+"""Self-distillation: targets from the test-time fit (resumable, chunked), their lookup and the loss."""
+
+import math
+
+import pytest
+import torch
+
+import prismonet.model.distill as distill
+from prismonet.assets import shipped_samples
+from prismonet.model.color_fit import ColorFitConfig
+from prismonet.model.distill import DistillError, DistillTargets, DistillWeights, distill_loss, fit_targets
+from prismonet.model.search import SearchConfig
+from prismonet.render import SceneParams
+
+
+def params(scale, position, yaw_deg, z_tex):
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    return SceneParams(torch.zeros(1, 1, 8), torch.tensor([[z_tex]]), torch.tensor([[position]]),
+                       torch.tensor([[[2 * c, 2 * s]]]), torch.tensor([[scale]]))  # (cos, sin) need not be unit
+
+
+def test_distill_loss_hand_computed():
+    p = params(0.5, [0.0, 0.0, 0.5], 0.0, [1.0, 0.0])
+    t = {"scale": torch.tensor([[0.6]]), "position": torch.tensor([[[0.1, -0.2, 0.5]]]),
+         "cos_sin": torch.tensor([[[0.0, 1.0]]]), "z_tex": torch.tensor([[[0.0, 0.0]]]), "bg_color": torch.tensor([[0.5, 0.5, 0.5]])}
+    bg = torch.tensor([[0.4, 0.5, 0.7]])
+    w = DistillWeights(position=1.0, scale=2.0, rotation=0.5, texture=0.1, background=1.0)
+    expect = 1.0 * 0.3 + 2.0 * 0.1 + 0.5 * 1.0 + 0.1 * 1.0 + 1.0 * 0.3  # 90 degrees of yaw: 1 - cos = 1
+    assert float(distill_loss(p, bg, t, torch.ones(1), w)) == pytest.approx(expect, rel=1e-6)
+    assert float(distill_loss(p, bg, t, torch.zeros(1), w)) == 0.0  # no targets for this scene
+
+
+def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+
+    monkeypatch.setattr(distill, "CHUNK", 2)
+    model, _ = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    search, color = SearchConfig(rounds=1), ColorFitConfig(steps=2)
+    s = fit_targets(model, ds, tmp_path / "t", 3, search, color, batch_size=2, progress=False)
+    assert s["score_after"] <= s["score_before"]  # the fit never makes a scene worse
+    files = sorted(p.name for p in (tmp_path / "t").glob("chunk_*.safetensors"))
+    assert files == ["chunk_00000.safetensors", "chunk_00001.safetensors"]
+    first = (tmp_path / "t" / files[0]).stat().st_mtime_ns
+    (tmp_path / "t" / files[1]).unlink()  # as if interrupted during the second chunk
+    s = fit_targets(model, ds, tmp_path / "t", 3, search, color, batch_size=2, progress=False)
+    assert (tmp_path / "t" / files[0]).stat().st_mtime_ns == first  # a finished chunk is kept, not redone
+    assert (tmp_path / "t" / files[1]).is_file()
+    t = DistillTargets(tmp_path / "t", num_slots=3)
+    assert t.count == 3 and tuple(t.t["position"].shape) == (3, 3, 3) and tuple(t.t["bg_color"].shape) == (3, 3)
+    tg, mask = t.lookup(torch.tensor([2, 0, 7]))
+    assert mask.tolist() == [1.0, 1.0, 0.0] and torch.equal(tg["scale"][0], t.t["scale"][2])
+    with pytest.raises(DistillError, match="other settings"):
+        fit_targets(model, ds, tmp_path / "t", 3, SearchConfig(rounds=2), color, progress=False)
+    with pytest.raises(DistillError, match="slots"):
+        DistillTargets(tmp_path / "t", num_slots=4)
+    with pytest.raises(DistillError, match="no distillation targets"):
+        DistillTargets(tmp_path / "missing", num_slots=3)
+    with pytest.raises(DistillError, match="count"):
+        fit_targets(model, ds, tmp_path / "u", 0, search, color, progress=False)
+
+
+def test_training_uses_the_targets(tmp_path, monkeypatch):
+    import json
+
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.io import load_model
+    from prismonet.model.losses import LossConfig
+    from prismonet.model.trainer import TrainConfig, train
+
+    model, _ = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    fit_targets(model, ds, tmp_path / "t", len(ds), SearchConfig(rounds=1), ColorFitConfig(steps=2), progress=False)
+    cfg = TrainConfig(data=str(shipped_samples()), split="test", steps=2, log_every=1, init_from="shipped",
+                      model=ModelConfig(soft_mask_tau=0.05), loss=LossConfig(w_mask=0.1, mask_from_depth=True, w_distill=0.5),
+                      distill=str(tmp_path / "t"))
+    train(cfg, tmp_path / "run", progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert all(r["distill"] > 0 for r in rows)
