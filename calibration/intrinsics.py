@@ -91,10 +91,12 @@ def calibrate_folder(paths: list[str | Path], board, fix_aspect_ratio: bool = Fa
 
     if not paths:
         raise CalibrationError("no photos given")
+    from prismonet.files import InputError, read_image
+
     images = []
     for p in paths:
-        im = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-        if im is None:
-            raise CalibrationError(f"{p}: cannot be read as an image")
-        images.append(im)
+        try:
+            images.append(read_image(p, cv2.IMREAD_GRAYSCALE))
+        except InputError as e:
+            raise CalibrationError(str(e)) from None
     return calibrate_images(images, board, [str(p) for p in paths], fix_aspect_ratio)

@@ -38,17 +38,24 @@ def load_calibration(path: str | Path) -> tuple[Calibration, np.ndarray | None]:
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"{path}: no such calibration file")
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise CalibrationError(f"{path}: not a readable OpenCV FileStorage file")
-    K = fs.getNode("camera_matrix").mat()
-    dist = fs.getNode("distortion_coefficients").mat()
-    if K is None or K.shape != (3, 3):
+    try:  # OpenCV's parser raises cv2.error or SystemError on truncated or garbage files
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        if not fs.isOpened():
+            raise CalibrationError(f"{path}: not a readable OpenCV FileStorage file")
+        K = fs.getNode("camera_matrix").mat()
+        dist = fs.getNode("distortion_coefficients").mat()
+        w, h = int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real())
+        rms = fs.getNode("avg_reprojection_error").real()
+        T = fs.getNode("T_world_cam").mat()
+        fs.release()
+    except (cv2.error, SystemError):
+        raise CalibrationError(f"{path}: not a readable OpenCV FileStorage file (truncated, or not OpenCV YAML/XML)") from None
+    if K is None or K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise CalibrationError(f"{path}: missing or malformed camera_matrix")
-    w, h = int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real())
-    rms = fs.getNode("avg_reprojection_error").real()
-    T = fs.getNode("T_world_cam").mat()
-    fs.release()
+    if w <= 0 or h <= 0:
+        raise CalibrationError(f"{path}: missing or non-positive image_width / image_height")
+    if T is not None and (T.shape != (4, 4) or not np.isfinite(T).all() or abs(np.linalg.det(T[:3, :3]) - 1) > 1e-3):
+        raise CalibrationError(f"{path}: T_world_cam must be a finite 4x4 rigid transform")
     dist = np.zeros(5) if dist is None else dist.reshape(-1)
     return Calibration(K, dist, (w, h), float(rms)), T
 

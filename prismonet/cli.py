@@ -6,6 +6,7 @@ Every command reports a bad input as one line, ``prismonet: error: ...``, and ex
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -254,14 +255,14 @@ def cmd_evaluate(args) -> int:
 
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
-    check_compatible(model, info, ds)
+    check_compatible(model, info, ds, any_camera=args.any_camera)
     overrides = {"lr": args.refine_lr, "pose_lr_scale": args.refine_pose_lr_scale}
     refine_cfg = RefineConfig(args.refine, **{k: v for k, v in overrides.items() if v is not None})  # validates even with K = 0
-    search_cfg = SearchConfig(rounds=args.search, w_depth=0.0 if args.search_color_only else SearchConfig.w_depth)
+    search_cfg = SearchConfig(rounds=args.search)
     color_cfg = ColorFitConfig(args.fit_color)
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
                              refine_cfg=refine_cfg, loss_cfg=training_loss_config(info), extra_slots=args.extra_slots,
-                             search_cfg=search_cfg, color_cfg=color_cfg)
+                             search_cfg=search_cfg, color_cfg=color_cfg, use_depth=not args.search_color_only)
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects, "
@@ -320,13 +321,12 @@ def cmd_calibrate_ground(args) -> int:
     import cv2
 
     from calibration.ground import ground_pose
-    from calibration.intrinsics import CalibrationError
     from calibration.storage import load_calibration, save_calibration
 
+    from prismonet.files import read_image
+
     cal, _ = load_calibration(args.camera)
-    img = cv2.imread(args.photo, cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise CalibrationError(f"{args.photo}: cannot be read as an image")
+    img = read_image(args.photo, cv2.IMREAD_GRAYSCALE)
     T, rms = ground_pose(img, cal.K, cal.dist, _board(args))
     print(f"camera height above the table {T[2, 3]:.3f}, reprojection RMS {rms:.3f} px")
     print(f"wrote {save_calibration(cal, args.out, T)} (with T_world_cam: z up, table at z = 0)")
@@ -344,6 +344,10 @@ def _box_and_gain(args):
         raise ValueError(f"--box: expected x0,y0,width,height, got {args.box!r}")
     if gain is not None and len(gain) != 3:
         raise ValueError(f"--gain: expected r,g,b, got {args.gain!r}")
+    if gain is not None and not all(math.isfinite(g) and g > 0 for g in gain):
+        raise ValueError(f"--gain: expected three finite positive numbers, got {args.gain!r}")
+    if (gain is not None) != (args.normalize == "manual"):
+        raise ValueError("--gain and --normalize manual go together" if gain is not None else "--normalize manual needs --gain r,g,b")
     return box, gain
 
 
@@ -383,8 +387,7 @@ def cmd_reconstruct(args) -> int:
     H, W = ds.arrays["rgb"].shape[1:3]
     if (H, W) != (model.cfg.image_size, model.cfg.image_size):
         raise ValueError(f"{args.data}: images are {W}x{H} but the model expects {model.cfg.image_size}x{model.cfg.image_size}")
-    if not args.any_camera:
-        check_compatible(model, info, ds)
+    check_compatible(model, info, ds, any_camera=args.any_camera)
     n = len(ds) if args.count is None else min(args.count, len(ds))
     out_dir = Path(args.out)
     has_depth = bool((ds.arrays["depth"][:n] > 0).any())
@@ -429,8 +432,18 @@ def _add_board_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dictionary", default="DICT_4X4_50", help="ArUco dictionary name")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's one-line errors: ``prismonet: error: ...``, exit status 2 (no usage block)."""
+
+    def error(self, message: str):
+        where = self.prog.removeprefix("prismonet").strip()
+        self.exit(2, f"prismonet: error: {where + ': ' if where else ''}{message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="prismonet", description=__doc__.splitlines()[0])
+    from prismonet.files import MAX_IMAGE_SIDE, MAX_MESH_RESOLUTION, arg_float, arg_int
+
+    p = _Parser(prog="prismonet", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="the main job: the shipped model decomposes the shipped test scenes")
@@ -442,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--search", type=int, default=3, metavar="R", help="search each slot's scale, position and yaw against the RGB-D for R rounds before any refinement (default 3; 0: the paper's feed-forward decoding)")
     demo.add_argument("--fit-color", type=int, default=50, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (default 50; 0: none)")
     demo.add_argument("--quiet", action="store_true")
-    demo.set_defaults(func=cmd_demo)
+    demo.set_defaults(func=cmd_demo, outputs=[("out", "dir")])
 
     data = sub.add_parser("data", help="datasets: generate, inspect, convert")
     dsub = data.add_subparsers(dest="data_command", required=True)
@@ -453,21 +466,21 @@ def build_parser() -> argparse.ArgumentParser:
     clevr.add_argument("--scenes", type=int, help="total scenes, split 72/8/20 %% (default: 9000,1000,2500)")
     clevr.add_argument("--split", type=_split, help="train,val,test counts, e.g. 9000,1000,2500")
     clevr.add_argument("--seed", type=int, default=0)
-    clevr.add_argument("--size", type=int, default=64, help="image side in pixels")
+    clevr.add_argument("--size", type=arg_int(8, MAX_IMAGE_SIDE), default=64, help="image side in pixels")
     clevr.add_argument("--noisy-depth", action="store_true", help="depth noise sigma = 0.001 d^2")
     clevr.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
     clevr.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
-    clevr.add_argument("--camera-jitter", type=float, default=0.0, help="uniform per-axis camera jitter")
+    clevr.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
     clevr.add_argument("--workers", type=int, default=2, help="rendering processes")
     clevr.add_argument("--quiet", action="store_true", help="no progress bar")
-    clevr.set_defaults(func=cmd_data_clevr)
+    clevr.set_defaults(func=cmd_data_clevr, outputs=[("out", "new_dir")])
 
     sheet = dsub.add_parser("sheet", help="contact-sheet PNG of a dataset's first scenes")
     sheet.add_argument("dataset")
     sheet.add_argument("--out", required=True)
     sheet.add_argument("--split", default="train")
-    sheet.add_argument("--count", type=int, default=8)
-    sheet.set_defaults(func=cmd_data_sheet)
+    sheet.add_argument("--count", type=arg_int(1, 1024), default=8)
+    sheet.set_defaults(func=cmd_data_sheet, outputs=[("out", "image")])
 
     verify = dsub.add_parser("verify", help="check a packed dataset's files and checksums")
     verify.add_argument("dataset")
@@ -477,56 +490,57 @@ def build_parser() -> argparse.ArgumentParser:
     to_folder.add_argument("dataset")
     to_folder.add_argument("out")
     to_folder.add_argument("--split", default="test")
-    to_folder.add_argument("--count", type=int)
-    to_folder.set_defaults(func=cmd_data_to_folder)
+    to_folder.add_argument("--count", type=arg_int(1))
+    to_folder.set_defaults(func=cmd_data_to_folder, outputs=[("out", "new_dir")])
 
     subset = dsub.add_parser("subset", help="copy some scenes of a packed split into a new packed dataset")
     subset.add_argument("dataset")
     subset.add_argument("out")
     subset.add_argument("--split", default="test")
-    subset.add_argument("--count", type=int, default=16, help="the first N scenes")
-    subset.set_defaults(func=cmd_data_subset)
+    subset.add_argument("--count", type=arg_int(1), default=16, help="the first N scenes")
+    subset.set_defaults(func=cmd_data_subset, outputs=[("out", "new_dir")])
 
     tr = sub.add_parser("train", help="train the scene model from RGB-D (resumable; works under torchrun)")
     tr.add_argument("config", help="JSON file of TrainConfig fields (e.g. configs/clevr3.json)")
     tr.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
     tr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. loss.blur=false")
     tr.add_argument("--quiet", action="store_true")
-    tr.set_defaults(func=cmd_train)
+    tr.set_defaults(func=cmd_train, outputs=[("out", "dir")])
 
     ev = sub.add_parser("evaluate", help="the paper's measures for a trained model on a dataset split")
     ev.add_argument("checkpoint", help="run folder, or model.safetensors / model.json")
     ev.add_argument("data", help="packed or folder dataset")
     ev.add_argument("--split", default="test")
-    ev.add_argument("--objects", type=int, help="recurrent steps (object-count generalisation); default: as trained")
+    ev.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (object-count generalisation); default: as trained")
     ev.add_argument("--batch", type=int, default=16)
     ev.add_argument("--limit", type=int, help="evaluate only the first N scenes")
+    ev.add_argument("--any-camera", action="store_true", help="evaluate scenes whose camera differs from training (measures then mean little)")
     ev.add_argument("--json", help="also write the results here")
     ev.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the best-explaining slots (beyond the paper)")
     ev.add_argument("--search", type=int, default=0, metavar="R",
                     help="search each slot's scale, position and yaw against the RGB-D for R rounds before any refinement (beyond the paper; 3 is the measured setting)")
-    ev.add_argument("--search-color-only", action="store_true", help="score the search on colour alone, as if the input had no depth (the paper's test-time input)")
+    ev.add_argument("--search-color-only", action="store_true", help="the extra-slot selection and the search read colour alone, as if the input had no depth (the paper's test-time input)")
     ev.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     ev.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K gradient steps per scene (beyond the paper)")
     ev.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default: RefineConfig's, 0.01)")
     ev.add_argument("--refine-pose-lr-scale", type=float,
                     help="positions and rotations step this many times faster than --refine-lr (default: RefineConfig's, 3)")
     ev.add_argument("--quiet", action="store_true")
-    ev.set_defaults(func=cmd_evaluate)
+    ev.set_defaults(func=cmd_evaluate, outputs=[("json", "file")])
 
     rc = sub.add_parser("reconstruct", help="decompose scenes (synthetic or prepared real photos): a figure and the latent scene each")
     rc.add_argument("checkpoint", help="run folder, or model.safetensors / model.json")
     rc.add_argument("data", help="packed or folder dataset (e.g. the output of 'real prepare')")
     rc.add_argument("--out", required=True)
     rc.add_argument("--split", default="test")
-    rc.add_argument("--count", type=int, help="only the first N scenes")
-    rc.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
+    rc.add_argument("--count", type=arg_int(1), help="only the first N scenes")
+    rc.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
     rc.add_argument("--any-camera", action="store_true", help="allow a camera that differs from training (real photos)")
     rc.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the slots that best explain the RGB(-D)")
     rc.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw for R rounds (against depth too, when the data has it)")
     rc.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     rc.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents for K steps (against depth too, when the data has it)")
-    rc.set_defaults(func=cmd_reconstruct)
+    rc.set_defaults(func=cmd_reconstruct, outputs=[("out", "dir")])
 
     shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
     ssub = shapes.add_subparsers(dest="shapes_command", required=True)
@@ -534,27 +548,29 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
     pre.add_argument("--config", help="JSON file with PretrainConfig fields")
     pre.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. decoder.width=128")
-    pre.add_argument("--resolution", type=int, default=64, help="marching-cubes resolution of the quality check")
+    pre.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=64, help="marching-cubes resolution of the quality check")
     pre.add_argument("--no-eval", action="store_true")
     pre.add_argument("--quiet", action="store_true")
-    pre.set_defaults(func=cmd_shapes_pretrain)
+    pre.set_defaults(func=cmd_shapes_pretrain, outputs=[("out", "dir")])
     ev = ssub.add_parser("eval", help="Chamfer-L1 and IoU of a prior on its training shapes")
     ev.add_argument("prior", nargs="?", help="prior path stem (default: the shipped Clevr prior)")
-    ev.add_argument("--resolution", type=int, default=64)
+    ev.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=64)
     ev.add_argument("--json", help="also write the full report here")
     ev.add_argument("--quiet", action="store_true")
-    ev.set_defaults(func=cmd_shapes_eval)
+    ev.set_defaults(func=cmd_shapes_eval, outputs=[("json", "file")])
     me = ssub.add_parser("mesh", help="extract a mesh (PLY/OBJ/GLB by extension) for a training shape or latent")
     me.add_argument("--prior", help="prior path stem (default: the shipped Clevr prior)")
     me.add_argument("--shape", type=int, default=0, help="training shape index")
     me.add_argument("--latent", help="comma-separated latent instead of --shape")
-    me.add_argument("--resolution", type=int, default=64)
+    me.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=64)
     me.add_argument("--out", required=True)
-    me.set_defaults(func=cmd_shapes_mesh)
+    me.set_defaults(func=cmd_shapes_mesh, outputs=[("out", "file")])
 
+    from prismonet.model.distill_cli import add_parsers as add_distill_parsers
     from prismonet.scene.cli import add_parsers as add_scene_parsers
 
     add_scene_parsers(sub)
+    add_distill_parsers(sub)
 
     cal = sub.add_parser("calibrate", help="camera calibration with OpenCV (intrinsics, ground plane)")
     csub = cal.add_subparsers(dest="calibrate_command", required=True)
@@ -563,25 +579,25 @@ def build_parser() -> argparse.ArgumentParser:
     _add_board_args(ci)
     ci.add_argument("--fix-aspect", action="store_true", help="fx = fy (as OpenCV's sample calibration)")
     ci.add_argument("--out", required=True, help="OpenCV FileStorage YAML")
-    ci.set_defaults(func=cmd_calibrate_intrinsics)
+    ci.set_defaults(func=cmd_calibrate_intrinsics, outputs=[("out", "file")])
     cg = csub.add_parser("ground", help="T_world_cam from one photo of the board lying on the table")
     cg.add_argument("photo")
     cg.add_argument("--camera", required=True, help="YAML from 'calibrate intrinsics'")
     _add_board_args(cg)
     cg.add_argument("--out", required=True)
-    cg.set_defaults(func=cmd_calibrate_ground)
+    cg.set_defaults(func=cmd_calibrate_ground, outputs=[("out", "file")])
 
     real = sub.add_parser("real", help="real photos: prepare them for the model, and reconstruct them")
     rsub = real.add_subparsers(dest="real_command", required=True)
     rp = rsub.add_parser("prepare", help="undistort, crop, resize and colour-normalise photos")
     rp.add_argument("photos", nargs="+")
     rp.add_argument("--out", required=True)
-    rp.add_argument("--size", type=int, default=64)
+    rp.add_argument("--size", type=arg_int(8, MAX_IMAGE_SIDE), default=64)
     rp.add_argument("--camera", help="calibration YAML (prismonet calibrate)")
     rp.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
     rp.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
     rp.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
-    rp.set_defaults(func=cmd_real_prepare)
+    rp.set_defaults(func=cmd_real_prepare, outputs=[("out", "dir")])
     rr = rsub.add_parser("reconstruct", help="prepare photos and decompose them: figure, latent scene, mesh and object count each")
     rr.add_argument("photos", nargs="+")
     rr.add_argument("--out", required=True)
@@ -590,15 +606,15 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
     rr.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
     rr.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
-    rr.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
-    rr.add_argument("--min-pixels", type=int, default=25, help="visible pixels for an object to count as found")
+    rr.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
+    rr.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
     rr.add_argument("--format", default="ply", choices=["ply", "obj", "glb"], help="mesh format")
     rr.add_argument("--extra-slots", type=int, default=0, metavar="E", help="decode E more encoder steps and keep the slots that best explain each photo")
     rr.add_argument("--search", type=int, default=0, metavar="R", help="search each slot's scale, position and yaw against each photo for R rounds (colour only)")
     rr.add_argument("--fit-color", type=int, default=0, metavar="K", help="fit texture latents and background colour to the image for K steps last, geometry held (beyond the paper; 50 is the measured setting)")
     rr.add_argument("--refine", type=int, default=0, metavar="K", help="refine the latents against each photo for K steps (image term only)")
     rr.add_argument("--quiet", action="store_true")
-    rr.set_defaults(func=cmd_real_reconstruct)
+    rr.set_defaults(func=cmd_real_reconstruct, outputs=[("out", "dir")])
 
     bench = sub.add_parser("bench", help="benchmarks (timings to record in BENCHMARKS.md)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
@@ -628,28 +644,68 @@ def build_parser() -> argparse.ArgumentParser:
     brender.add_argument("--repeats", type=int, default=5)
     brender.add_argument("--out", default="benchmarks", help="folder for render.md and the PNG plot")
     brender.add_argument("--update", metavar="BENCHMARKS.md", help="also replace the render-bench section of this file")
-    brender.set_defaults(func=cmd_bench_render)
+    brender.set_defaults(func=cmd_bench_render, outputs=[("out", "dir")])
     return p
 
 
+def _one_line(e: BaseException) -> str:
+    """An error's message on one line (some library messages span several)."""
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+def _remove_empty_tree(p: Path) -> None:
+    """Remove ``p`` if it holds nothing but empty folders (never a file)."""
+    if not p.is_dir():
+        return
+    for sub in sorted(p.rglob("*"), key=lambda q: len(q.parts), reverse=True):
+        if sub.is_dir() and not any(sub.iterdir()):
+            sub.rmdir()
+    if not any(p.iterdir()):
+        p.rmdir()
+
+
+def _error(message: str) -> int:
+    print(f"prismonet: error: {message}", file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
-    from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
     from calibration.intrinsics import CalibrationError
     from realdata.io import PhotoError
 
     from prismonet.config import ConfigError
+    from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
+    from prismonet.files import check_output, shown
     from prismonet.model.io import CheckpointError
     from prismonet.model.trainer import TrainingError
     from prismonet.shapes.normalize import MeshError
 
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    if hasattr(sys.stdout, "reconfigure"):  # print paths that are not valid UTF-8 escaped, as stderr does
+        sys.stdout.reconfigure(errors="backslashreplace")
     try:
-        return args.func(args)
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # argparse: --help (0) or a bad argument (2, one line already printed)
+        return e.code if isinstance(e.code, int) else 2
+    new_dirs: list[Path] = []
+    try:
+        for dest, kind in getattr(args, "outputs", ()):  # every output path, before any work
+            if getattr(args, dest, None) is not None:
+                p = check_output(getattr(args, dest), kind)
+                if kind in ("dir", "new_dir") and not p.exists():
+                    new_dirs.append(p)
+        rc = args.func(args)
+        new_dirs = []
+        return rc
     except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError, CalibrationError, PhotoError,
             ValueError, FileNotFoundError) as e:
-        print(f"prismonet: error: {e}", file=sys.stderr)
-        return 2
+        return _error(_one_line(e))
+    except OSError as e:  # a file system refusal the checks above could not foresee (full disk, a race)
+        return _error(f"{shown(e.filename) + ': ' if e.filename else ''}{e.strerror or e}")
+    except MemoryError:
+        return _error("out of memory (a size or count too large for this machine?)")
     except KeyboardInterrupt:
         print("prismonet: interrupted", file=sys.stderr)
         return 130
+    finally:
+        for p in new_dirs:  # a command that failed leaves no empty output folders behind
+            _remove_empty_tree(p)

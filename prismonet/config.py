@@ -33,10 +33,46 @@ def _build(cls, data: dict, where: str):
         typ = hints[f.name]
         if dataclasses.is_dataclass(typ):
             value = _build(typ, value, f"{where}{f.name}.")
-        elif isinstance(value, list):
-            value = tuple(value)
+        else:
+            _check_type(f"{where}{f.name}", value, typ)
+            if isinstance(value, list):
+                value = tuple(value)
         kwargs[f.name] = value
     return cls(**kwargs)
+
+
+def _check_type(name: str, value, typ) -> None:
+    """Raise ``ConfigError`` unless ``value`` (parsed JSON) fits the field's annotation: numbers
+    for ``float`` (finite), integers for ``int``, lists for tuples, ``null`` for optional fields."""
+    import math
+    import types
+
+    def fits(v, t) -> bool:
+        origin = typing.get_origin(t)
+        if origin in (typing.Union, types.UnionType):
+            return any(fits(v, a) for a in typing.get_args(t))
+        if t is type(None):
+            return v is None
+        if t is bool:
+            return isinstance(v, bool)
+        if t is int:
+            return isinstance(v, int) and not isinstance(v, bool)
+        if t is float:
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        if t is str:
+            return isinstance(v, str)
+        if origin is tuple:
+            args = typing.get_args(t)
+            if not isinstance(v, (list, tuple)):
+                return False
+            if len(args) == 2 and args[1] is Ellipsis:
+                return all(fits(x, args[0]) for x in v)
+            return len(v) == len(args) and all(fits(x, a) for x, a in zip(v, args))
+        return True  # anything else is checked by the config's own validation
+
+    if not fits(value, typ):
+        want = str(typ).replace("typing.", "").replace("<class '", "").replace("'>", "")
+        raise ConfigError(f"{name}: expected {want}, got {value!r}")
 
 
 def to_dict(cfg) -> dict:
@@ -47,12 +83,12 @@ def load_config(cls, path: str | Path | None = None, overrides: list[str] | None
     """Build ``cls`` from defaults, then a JSON file (``"-"`` for none), then ``key=value`` overrides."""
     data: dict = {}
     if path is not None and str(path) != "-":  # "-": defaults only
+        from prismonet.files import InputError, read_json
+
         try:
-            data = json.loads(Path(path).read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: no such config file") from None
-        except json.JSONDecodeError as e:
-            raise ConfigError(f"{path}: not valid JSON ({e})") from None
+            data = read_json(path)
+        except InputError as e:
+            raise ConfigError(str(e).replace("no such file", "no such config file")) from None
     for item in overrides or []:
         if "=" not in item:
             raise ConfigError(f"override {item!r}: expected key=value")

@@ -29,9 +29,12 @@ def load_photo(path: str | Path) -> np.ndarray:
         raise PhotoError(f"{path}: unsupported format {path.suffix or '(no extension)'}; expected one of {', '.join(PHOTO_SUFFIXES)}")
     if path.stat().st_size == 0:
         raise PhotoError(f"{path}: empty file")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
-    if img is None:
-        raise PhotoError(f"{path}: cannot be read as an image")
+    from prismonet.files import InputError, read_image
+
+    try:
+        img = read_image(path, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
+    except InputError as e:
+        raise PhotoError(str(e)) from None
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
     if scale is None:
         raise PhotoError(f"{path}: unsupported pixel type {img.dtype} (expected 8- or 16-bit)")

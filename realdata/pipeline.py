@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.files import write_image
 from realdata.color import ColorMapping, estimate_table_color, table_mapping
-from realdata.io import load_photo
+from realdata.io import PhotoError, load_photo
 from realdata.prepare import auto_table_box, crop, resize, undistort
 
 DEFAULT_TARGET = (150, 150, 150)
@@ -27,8 +28,6 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         box: crop ``(x0, y0, w, h)``; default: automatic, around the table region.
         normalize: ``"auto"`` (table colour -> ``target``), ``"none"``, or ``"manual"`` with ``gain``.
     """
-    import cv2
-
     from prismonet.data.folder import FOLDER_FORMAT, FOLDER_VERSION
     from prismonet.geometry.camera import Camera, intrinsics_matrix
 
@@ -63,6 +62,9 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         cam = Camera(K, T_world_cam, H, W)
         b = box if box is not None else auto_table_box(img)
         img, cam = crop(img, cam, b)
+        if min(img.shape[:2]) < size:
+            raise PhotoError(f"{p}: the crop is {img.shape[1]}x{img.shape[0]} px, smaller than the {size}x{size} model input; "
+                             "use a larger photo or crop (upscaling would invent the detail the model reads)")
         img, cam = resize(img, cam, size)
         if normalize == "auto":
             mapping = table_mapping(estimate_table_color(img), np.asarray(target) / 255.0)
@@ -72,7 +74,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             mapping = ColorMapping((1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
         img = mapping.apply(img)
         name = Path(p).stem
-        cv2.imwrite(str(out / "rgb" / f"{name}.png"), (np.clip(img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
+        write_image(out / "rgb" / f"{name}.png", (np.clip(img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
         record = {"photo": str(p), "crop_box": list(map(int, b)), "color_mapping": mapping.to_dict(), "camera": cam.to_dict(),
                   "undistorted": cal is not None}
         (out / "annotations" / f"{name}.json").write_text(json.dumps({"camera": cam.to_dict(), "prepare": record}, indent=1))

@@ -175,7 +175,7 @@ def test_corrupted_packed_files(packed, tmp_path):
         SceneDataset(root, "val")
     # corrupted meta
     (root / "meta.json").write_text('{"format": "prismonet-packed", "vers')
-    with pytest.raises(DatasetError, match="meta.json: corrupted JSON"):
+    with pytest.raises(DatasetError, match="meta.json: not valid JSON"):
         SceneDataset(root, "test")
 
 

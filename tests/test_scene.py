@@ -72,7 +72,7 @@ def test_bad_scene_files(model, scene, tmp_path):
     with pytest.raises(LatentSceneError, match="no such"):
         LatentScene.load(tmp_path / "missing.json")
     (tmp_path / "bad.json").write_text("{not json")
-    with pytest.raises(LatentSceneError, match="not JSON"):
+    with pytest.raises(LatentSceneError, match="not valid JSON"):
         LatentScene.load(tmp_path / "bad.json")
     d = scene.to_dict()
     with pytest.raises(LatentSceneError, match="format"):

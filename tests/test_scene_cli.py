@@ -73,13 +73,13 @@ def test_views_orbit_and_pose(exported, tmp_path):
         (["export", "--out", "{tmp}/e"], "give either --scene FILE or --data DIR"),
         (["export", "--data", "{samples}", "--index", "99", "--out", "{tmp}/e"], "--index"),
         (["export", "--scene", "{tmp}/none.json", "--out", "{tmp}/e"], "no such latent-scene file"),
-        (["views", "{scene}", "--frames", "0", "--out", "{tmp}/v"], "frames must be positive"),
+        (["views", "{scene}", "--frames", "0", "--out", "{tmp}/v"], "--frames: must be in [1, 3600]"),
         (["views", "{scene}", "--eye", "1,2", "--out", "{tmp}/v"], "--eye: expected 3 comma-separated numbers"),
         (["edit", "{scene}", "--swap-shape", "0", "--out", "{tmp}/x.json"], "--swap-shape: expected two object indices"),
         (["edit", "{scene}", "--add", "nofile", "--out", "{tmp}/x.json"], "--add: expected SCENE.json:OBJECT"),
         (["real", "reconstruct", "x.jpg", "--box", "1,2,3", "--out", "{tmp}/r"], "--box: expected x0,y0,width,height"),
         (["real", "reconstruct", "x.jpg", "--gain", "a,b,c", "--out", "{tmp}/r"], "--box takes four integers and --gain three numbers"),
-        (["data", "subset", "{samples}", "{tmp}/s", "--count", "0"], "--count must be positive"),
+        (["data", "subset", "{samples}", "{tmp}/s", "--count", "0"], "--count: must be >= 1"),
     ],
 )
 def test_scene_command_errors_are_one_line(exported, tmp_path, capsys, argv, message):

@@ -87,6 +87,8 @@ class ClevrConfig:
             raise ValueError(f"scale_range must satisfy 0 < min <= max, got {self.scale_range}")
         if self.area_half <= 0:
             raise ValueError(f"area_half must be positive, got {self.area_half}")
+        if not (math.isfinite(self.camera_jitter) and self.camera_jitter >= 0):
+            raise ValueError(f"camera_jitter must be a finite number >= 0, got {self.camera_jitter}")
 
     @property
     def ground_z(self) -> float:

@@ -22,12 +22,14 @@ ids. When ``depth/`` or ``instance/`` exists it must hold a file for every scene
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
 from prismonet.data.errors import DatasetError
 from prismonet.data.scenes import empty_scene_arrays
+from prismonet.files import write_image
 
 FOLDER_FORMAT = "prismonet-folder"
 FOLDER_VERSION = 1
@@ -36,19 +38,21 @@ DEFAULT_DEPTH_SCALE = 1000.0
 
 
 def _imread(path: Path, flags: int) -> np.ndarray:
-    import cv2
+    from prismonet.files import InputError, read_image
 
-    img = cv2.imread(str(path), flags)
-    if img is None:
-        raise DatasetError(f"{path}: cannot be read as an image")
-    return img
+    try:
+        return read_image(path, flags)
+    except InputError as e:
+        raise DatasetError(str(e)) from None
 
 
 def _read_json(path: Path) -> dict:
+    from prismonet.files import InputError, read_json
+
     try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{path}: corrupted JSON ({e})") from None
+        return read_json(path, dict)
+    except InputError as e:
+        raise DatasetError(f"corrupted JSON: {e}") from None
 
 
 def _lookup(value, names: tuple[str, ...], what: str, path: Path) -> int:
@@ -82,12 +86,17 @@ def read_folder(root: Path) -> tuple[dict[str, np.ndarray], list[str], dict]:
     has_instance = (root / "instance").is_dir()
     if has_depth and "depth_scale" not in meta:
         raise DatasetError(f"{meta_path}: has depth/ but no 'depth_scale'")
-    depth_scale = float(meta.get("depth_scale", DEFAULT_DEPTH_SCALE))
+    depth_scale = meta.get("depth_scale", DEFAULT_DEPTH_SCALE)
+    if isinstance(depth_scale, bool) or not isinstance(depth_scale, (int, float)) or not math.isfinite(depth_scale) or depth_scale <= 0:
+        raise DatasetError(f"{meta_path}: 'depth_scale' must be a finite positive number, got {depth_scale!r}")
+    depth_scale = float(depth_scale)
 
     annotations = {}
     for name in names:
         path = root / "annotations" / f"{name}.json"
         annotations[name] = _read_json(path) if path.is_file() else {}
+        if not isinstance(annotations[name], dict) or not isinstance(annotations[name].get("objects", []), list):
+            raise DatasetError(f"{path}: expected a JSON object whose 'objects' is a list")
     max_objects = max([len(a.get("objects", [])) for a in annotations.values()] + [1])
 
     first = _imread(root / "rgb" / f"{names[0]}.png", cv2.IMREAD_COLOR)
@@ -148,8 +157,6 @@ def write_folder(root: Path, arrays: dict[str, np.ndarray], depth_scale: float =
     The camera of the first scene becomes the default in ``dataset.json``; every scene's
     annotation also carries its own camera, so per-scene cameras survive the round trip.
     """
-    import cv2
-
     from prismonet.data.clevr import COLOR_NAMES
     from prismonet.shapes.clevr_set import CATEGORIES
 
@@ -167,10 +174,10 @@ def write_folder(root: Path, arrays: dict[str, np.ndarray], depth_scale: float =
     width = max(4, len(str(n - 1)))
     for i in range(n):
         name = f"{i:0{width}d}"
-        cv2.imwrite(str(root / "rgb" / f"{name}.png"), np.ascontiguousarray(arrays["rgb"][i][..., ::-1]))
+        write_image(root / "rgb" / f"{name}.png", arrays["rgb"][i][..., ::-1])
         depth = np.rint(np.asarray(arrays["depth"][i], dtype=np.float64) * depth_scale).astype(np.uint16)
-        cv2.imwrite(str(root / "depth" / f"{name}.png"), depth)
-        cv2.imwrite(str(root / "instance" / f"{name}.png"), np.ascontiguousarray(arrays["instance"][i]))
+        write_image(root / "depth" / f"{name}.png", depth)
+        write_image(root / "instance" / f"{name}.png", arrays["instance"][i])
         objects = []
         for k in range(int(arrays["obj_count"][i])):
             cat, col = int(arrays["obj_category"][i, k]), int(arrays["obj_color"][i, k])

@@ -26,6 +26,34 @@ CHUNK = 250
 """Scenes per worker task: large enough to amortise process overhead, small for a smooth bar."""
 
 
+def _die_with_parent() -> None:
+    """Worker initializer: on Linux, have the kernel kill this worker when its parent dies (even by
+    SIGKILL), so an interrupted ``data clevr`` leaves no orphaned workers blocked on a pipe."""
+    import ctypes
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+        except OSError:
+            pass
+    if os.getppid() == 1:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def _remove_stale_partials(out: Path) -> None:
+    """Remove hidden partial folders of earlier runs for ``out`` whose process is gone (killed)."""
+    for p in out.parent.glob(f".{out.name}.partial-*"):
+        try:
+            pid = int(p.name.rsplit("-", 1)[1])
+            os.kill(pid, 0)  # still running: leave it
+        except ProcessLookupError:
+            shutil.rmtree(p, ignore_errors=True)
+        except (ValueError, PermissionError):
+            continue
+
+
 def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, np.ndarray]:
     """Sample and render scenes ``start..stop-1`` (runs in worker processes)."""
     from prismonet.data.raycast_gt import render_scene, world_rays
@@ -73,9 +101,10 @@ def check_output_dir(out: Path) -> None:
     parent = out.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=parent, prefix=".prismonet-probe-")
-        os.close(fd)
-        os.unlink(probe)
+        for folder in ([out] if out.exists() else []) + [parent]:  # an existing empty --out must be writable too
+            fd, probe = tempfile.mkstemp(dir=folder, prefix=".prismonet-probe-")
+            os.close(fd)
+            os.unlink(probe)
     except OSError as e:
         raise OutputDirError(f"{out}: output folder is not writable ({e.strerror or e})") from None
 
@@ -112,10 +141,12 @@ def generate_clevr(
     out = Path(out)
     check_output_dir(out)
     total = int(sum(split))
+    _remove_stale_partials(out)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     t0 = time.perf_counter()
+    previous_term = _sigterm_interrupts()
     try:
         arrays = empty_scene_arrays(total, cfg.image_size, cfg.image_size, cfg.num_objects)
         chunks = [(s, min(s + chunk, total)) for s in range(0, total, chunk)]
@@ -130,7 +161,7 @@ def generate_clevr(
         else:
             import multiprocessing as mp
 
-            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_die_with_parent) as pool:
                 futures = [pool.submit(render_range, cfg_dict, seed, a, b) for a, b in chunks]
                 for (a, b), fut in zip(chunks, futures):
                     part = fut.result()
@@ -155,9 +186,30 @@ def generate_clevr(
         meta["seconds"] = round(time.perf_counter() - t0, 2)
         packed.write_meta(tmp, meta)
         if out.exists():
+            os.chmod(tmp, out.stat().st_mode & 0o7777)  # the folder the user made keeps its mode
             out.rmdir()  # checked empty above
         tmp.rename(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        if previous_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous_term)
     return meta
+
+
+def _sigterm_interrupts():
+    """SIGTERM raises ``KeyboardInterrupt`` (so the partial folder is removed) while generating;
+    returns the previous handler, or ``None`` off the main thread."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    return signal.signal(signal.SIGTERM, handler)

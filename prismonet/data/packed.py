@@ -65,14 +65,20 @@ def read_meta(root: Path) -> dict:
     path = Path(root) / "meta.json"
     if not path.is_file():
         raise DatasetError(f"{root}: not a packed dataset (no meta.json)")
+    from prismonet.files import InputError, read_json
+
     try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{path}: corrupted JSON ({e})") from None
+        meta = read_json(path, dict)
+    except InputError as e:
+        raise DatasetError(f"corrupted meta.json: {e}") from None
     if meta.get("format") != PACKED_FORMAT:
         raise DatasetError(f"{path}: format is {meta.get('format')!r}, expected {PACKED_FORMAT!r}")
     if meta.get("version") != PACKED_VERSION:
         raise DatasetError(f"{path}: version {meta.get('version')} is not supported (expected {PACKED_VERSION})")
+    splits = meta.get("splits")
+    if not isinstance(splits, dict) or not all(isinstance(v, dict) and all(
+            isinstance(e, dict) and {"shape", "dtype", "bytes"} <= set(e) for e in v.values()) for v in splits.values()):
+        raise DatasetError(f"{path}: 'splits' must map each split to its arrays' shape, dtype and bytes")
     return meta
 
 
@@ -104,6 +110,9 @@ def open_split(root: Path, split: str, verify: bool = False) -> dict[str, np.nda
     missing = set(SCENE_ARRAYS) - set(arrays)
     if missing:
         raise DatasetError(f"{root}/{split}: meta.json lists no {sorted(missing)}")
+    rows = {name: a.shape[0] if a.ndim else -1 for name, a in arrays.items()}
+    if len(set(rows.values())) != 1:
+        raise DatasetError(f"{root}/{split}: arrays disagree on the number of scenes: {rows}")
     return arrays
 
 

@@ -19,36 +19,58 @@ from prismonet.evaluation.metrics import (
 )
 
 CAMERA_TOLERANCE = 0.01
-"""Relative difference of focal length or principal point above which a dataset's camera is
-taken to differ from the one the model was trained with."""
+"""Relative difference of focal length or principal point (to the focal length), or of the camera
+pose (rotation entries; position relative to the camera's distance from the origin), above which a
+dataset's camera is taken to differ from the one the model was trained with."""
 
 TABLE_COLUMNS = [
     ("AP0.5", "AP0.5", 3), ("AR0.5", "AR0.5", 3), ("F1_0.5", "F1", 3), ("mAP", "mAP", 3), ("allObj", "allObj", 3),
+    ("AP0.5_unfiltered", "AP0.5 unf.", 3), ("AR0.5_unfiltered", "AR0.5 unf.", 3), ("mAP_unfiltered", "mAP unf.", 3),
     ("img_RMSE", "RMSE", 3), ("PSNR", "PSNR", 1), ("SSIM", "SSIM", 3),
     ("depth_RMSE", "D-RMSE", 3), ("AbsRD", "AbsRD", 4), ("SqRD", "SqRD", 4),
     ("pos_err", "pos", 3), ("rot_err", "rot", 1), ("rot_err_sym", "rot sym", 1), ("ARI", "ARI", 3), ("ARI-FG", "ARI-FG", 3),
 ]
 
 
-def check_compatible(model, info: dict, ds) -> None:
-    """Raise ``ValueError`` when the dataset's image size or camera does not match the model."""
+def check_compatible(model, info: dict, ds, any_camera: bool = False) -> None:
+    """Raise ``ValueError`` when the dataset's image size does not match the model, its images or
+    depth hold non-finite values, or (unless ``any_camera``) any scene's camera, intrinsics or pose,
+    differs from the one the model was trained with."""
     H, W = ds.arrays["rgb"].shape[1:3]
     s = model.cfg.image_size
     if (H, W) != (s, s):
         raise ValueError(f"dataset images are {W}x{H} but the model expects {s}x{s}")
-    if "camera_K" in info:
-        K_train = np.asarray(info["camera_K"])
-        K_data = np.asarray(ds.arrays["K"][0])
-        rel = np.abs(K_data - K_train)[[0, 1, 0, 1], [0, 1, 2, 2]] / K_train[0, 0]
-        if rel.max() > CAMERA_TOLERANCE:
-            raise ValueError(f"dataset camera (fx={K_data[0, 0]:.1f}, cx={K_data[0, 2]:.1f}) differs from the model's training camera "
-                             f"(fx={K_train[0, 0]:.1f}, cx={K_train[0, 2]:.1f}); crop and resize the images to match (realdata)")
+    if not np.isfinite(ds.arrays["depth"]).all():
+        raise ValueError("the dataset's depth holds NaN or infinite values")
+    if any_camera or "camera_K" not in info:
+        return
+    K_train = np.asarray(info["camera_K"], np.float64)
+    K_data = np.asarray(ds.arrays["K"], np.float64)  # (N, 3, 3)
+    rel = (np.abs(K_data - K_train)[:, [0, 1, 0, 1], [0, 1, 2, 2]] / K_train[0, 0]).max(1)
+    bad = np.nonzero(rel > CAMERA_TOLERANCE)[0]
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"camera of {bad.size} scene(s), first scene {i} (fx={K_data[i, 0, 0]:.1f}, cx={K_data[i, 0, 2]:.1f}), differs "
+                         f"from the model's training camera (fx={K_train[0, 0]:.1f}, cx={K_train[0, 2]:.1f}); crop and resize the "
+                         "images to match (realdata), or pass --any-camera")
+    if "camera_T_world_cam" in info:
+        T_train = np.asarray(info["camera_T_world_cam"], np.float64)
+        T_data = np.asarray(ds.arrays["T_world_cam"], np.float64)  # (N, 4, 4)
+        dist = max(float(np.linalg.norm(T_train[:3, 3])), 1e-6)
+        diff = np.maximum(np.abs(T_data[:, :3, :3] - T_train[:3, :3]).reshape(len(T_data), -1).max(1),
+                          np.linalg.norm(T_data[:, :3, 3] - T_train[:3, 3], axis=1) / dist)
+        bad = np.nonzero(diff > CAMERA_TOLERANCE)[0]
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(f"camera pose of {bad.size} scene(s), first scene {i} (position {np.round(T_data[i, :3, 3], 2).tolist()}), "
+                             f"differs from the model's training camera (position {np.round(T_train[:3, 3], 2).tolist()}); "
+                             "pass --any-camera to evaluate anyway")
 
 
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
                    refine_cfg=None, loss_cfg=None, extra_slots: int = 0, search_cfg=None,
-                   color_cfg=None) -> dict:
+                   color_cfg=None, use_depth: bool = True) -> dict:
     """Run the model over a dataset split and compute the paper's measures.
 
     ``refine_cfg``: a ``RefineConfig`` to refine the latents at test time (with ``loss_cfg``, the
@@ -59,6 +81,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     RGB-D after decoding and before any refinement (``prismonet.model.search``).
     ``color_cfg``: a ``ColorFitConfig`` to fit texture latents and background colour to the image
     last, with geometry held (``prismonet.model.color_fit``); instance and depth measures unchanged.
+    ``use_depth``: whether the slot selection and the search may read the scene's depth (``False``:
+    colour only, the paper's test-time input; refinement keeps the training losses either way).
     ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
     steps that were not kept count as not visible), with each step's mean position error and median
     predicted / true scale over its matched objects.
@@ -84,9 +108,9 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
-        out = decode_overcomplete(model, b, N, extra_slots, w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth)
+        out = decode_overcomplete(model, b, N, extra_slots, w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth if use_depth else 0.0)
         if search_cfg is not None:
-            out = search_latents(model, out, b, search_cfg)
+            out = search_latents(model, out, b, search_cfg, use_depth=use_depth)
         if refine_cfg is not None and refine_cfg.steps > 0:
             out = refine(model, out, b, loss_cfg, refine_cfg)
         if color_cfg is not None and color_cfg.steps > 0:
@@ -133,6 +157,9 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["search_rounds"] = 0 if search_cfg is None else search_cfg.rounds
     results["color_fit_steps"] = 0 if color_cfg is None else color_cfg.steps
     results["seconds_per_scene"] = seconds / max(n, 1)
+    bad = [k for k in ("AP0.5", "AR0.5", "PSNR", "depth_RMSE") if not math.isfinite(results[k])]
+    if bad:
+        raise ValueError(f"non-finite measures {bad}: the model or the data holds NaN or infinite values")
     return results
 
 

@@ -46,6 +46,10 @@ class ModelConfig:
             raise ValueError(f"inputs: expected one of {INPUT_MODES}, got {self.inputs!r}")
         if self.num_slots <= 0 or self.image_size <= 0 or self.tex_dim <= 0:
             raise ValueError(f"num_slots, image_size and tex_dim must be positive, got {self.num_slots}, {self.image_size}, {self.tex_dim}")
+        from prismonet.files import MAX_IMAGE_SIDE, MAX_SLOTS
+
+        if self.num_slots > MAX_SLOTS or self.image_size > MAX_IMAGE_SIDE:
+            raise ValueError(f"num_slots must be at most {MAX_SLOTS} and image_size at most {MAX_IMAGE_SIDE}, got {self.num_slots}, {self.image_size}")
         lo, hi = self.scale_range
         if not 0 < lo < hi:
             raise ValueError(f"scale_range must satisfy 0 < min < max, got {self.scale_range}")

@@ -6,6 +6,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
+import torch
 
 from prismonet.model.config import ModelConfig
 
@@ -80,6 +81,8 @@ def load_fitting(model, tensors: dict, where: str) -> None:
         if t.shape != tensors[name].shape:
             raise CheckpointError(f"{where}: does not fit this configuration: {name} has shape "
                                   f"{tuple(tensors[name].shape)}, expected {tuple(t.shape)}")
+        if tensors[name].is_floating_point() and not torch.isfinite(tensors[name]).all():
+            raise CheckpointError(f"{where}: weights {name} hold NaN or infinite values")
     model.load_state_dict(tensors)
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from prismonet.files import write_image
 from prismonet.model.config import ModelConfig
 from prismonet.model.losses import LossConfig, compute_losses
 
@@ -58,6 +59,9 @@ class TrainConfig:
     init_from: str | None = None
     """A trained model (run folder or ``.safetensors``) whose weights start the run, e.g. to fine-tune a
     3-object model on scenes with 4 or 5 objects (the encoder is shared across slots)."""
+    distill: str | None = None
+    """Folder of self-distillation targets (``prismonet distill``, ``prismonet.model.distill``) for
+    the first scenes of the split; used with ``loss.w_distill > 0``."""
     input_noise: float = 0.02
     """Std of the Gaussian noise added to input images (the paper adds noise; its level is not given)."""
     depth_noise_eta: float = 0.0
@@ -67,6 +71,9 @@ class TrainConfig:
     """Global gradient-norm clip (0 = off)."""
     seed: int = 0
     threads: int = 2
+    """Compute threads per process; 0: chosen by measuring, between 1 and the machine's cores, again
+    every few hundred steps (``prismonet.threads``: on a shared 2-core machine two threads are 1.4x
+    faster when it is quiet and 2.6x slower under load). Fixed counts keep a run bit-reproducible."""
     log_every: int = 25
     image_every: int = 500
     checkpoint_every: int = 200
@@ -75,9 +82,11 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0:
             raise ValueError(f"steps, batch_size and lr must be positive, got {self.steps}, {self.batch_size}, {self.lr}")
-        for name in ("log_every", "image_every", "checkpoint_every", "threads"):
+        for name in ("log_every", "image_every", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.threads < 0:
+            raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
         if self.input_noise < 0 or self.depth_noise_eta < 0:
             raise ValueError("input_noise and depth_noise_eta must be non-negative")
         if self.lr_decay_from is not None and not 0 <= self.lr_decay_from < self.steps:
@@ -132,11 +141,15 @@ def _dist() -> tuple[int, int]:
     return (torch.distributed.get_rank() if world > 1 else 0), world
 
 
-def _interrupt_on_sigterm():
-    """Make SIGTERM (``kill``, a scheduler's stop) end training like Ctrl-C: with a checkpoint.
+def _defer_stop_signals(stop: dict):
+    """Ctrl-C (SIGINT) and ``kill`` (SIGTERM, a scheduler's stop) end training at the next step
+    boundary, with a checkpoint: the handler only records the signal in ``stop["signal"]``, so the
+    weights, the optimiser and the step counter are always saved together (a signal between
+    ``opt.step()`` and the counter's increment once saved them one step apart). A second signal
+    stops at once, without a checkpoint (the last periodic one stays).
 
     Background jobs started by a non-interactive shell ignore SIGINT, so ``kill`` is the usual
-    way to stop them. Returns the previous handler, or ``None`` off the main thread."""
+    way to stop them. Returns the previous handlers, or ``None`` off the main thread."""
     import signal
     import threading
 
@@ -144,9 +157,29 @@ def _interrupt_on_sigterm():
         return None
 
     def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
+        if stop.get("signal") is not None:
+            raise KeyboardInterrupt(f"signal {signum} (second)")
+        stop["signal"] = signum
 
-    return signal.signal(signal.SIGTERM, handler)
+    return {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)
+            if signal.getsignal(s) is not signal.SIG_IGN or s == signal.SIGTERM}
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Drop the lines of ``log.jsonl`` past ``step`` (written after the checkpoint a run resumes
+    from), so a resumed run's log lists each step once."""
+    if not path.is_file():
+        return
+    keep = []
+    for line in path.read_text().splitlines():
+        try:
+            if json.loads(line).get("step", 0) <= step:
+                keep.append(line)
+        except json.JSONDecodeError:
+            continue  # a line cut short by a kill
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text("".join(k + "\n" for k in keep))
+    os.replace(tmp, path)
 
 
 def check_dataset_fits(ds, cfg: TrainConfig) -> None:
@@ -155,6 +188,13 @@ def check_dataset_fits(ds, cfg: TrainConfig) -> None:
         raise ValueError(f"{cfg.data}: images are {W}x{H} but the model expects {cfg.model.image_size}x{cfg.model.image_size}")
     if len(ds) < 1:
         raise ValueError(f"{cfg.data}: split {cfg.split!r} is empty")
+    import numpy as np
+
+    depth = ds.arrays["depth"]
+    if not np.isfinite(depth).all():
+        raise ValueError(f"{cfg.data}: split {cfg.split!r} has NaN or infinite depth; training needs valid RGB-D")
+    if not (np.asarray(depth[: min(len(ds), 256)]) > 0).any():
+        raise ValueError(f"{cfg.data}: split {cfg.split!r} has no depth (all zero); training needs RGB-D")
 
 
 def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -182,7 +222,7 @@ def image_grid(batch, out, path: Path, n: int = 4) -> None:
                   colorize_instances(out.composite.instance[i].numpy())]
         rows.append(np.concatenate([cv2.resize(p, (128, 128), interpolation=cv2.INTER_NEAREST) for p in panels], 1))
     path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), np.concatenate(rows, 0)[..., ::-1])
+    write_image(path, np.concatenate(rows, 0)[..., ::-1])
 
 
 def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_after: int | None = None) -> dict:
@@ -197,19 +237,31 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     rank, world = _dist()
     if cfg.batch_size % world:
         raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the number of processes {world}")
-    torch.set_num_threads(max(1, cfg.threads // world))
+    governor = None
+    if cfg.threads > 0:
+        torch.set_num_threads(max(1, cfg.threads // world))
+    else:
+        from prismonet.threads import ThreadGovernor
+
+        cores = max(1, len(os.sched_getaffinity(0)) // world)
+        governor = ThreadGovernor(tuple(range(1, cores + 1)) if cores <= 2 else (1, cores // 2, cores))
     torch.manual_seed(cfg.seed)
     run = Path(run_dir)
+    ds = SceneDataset(cfg.data, cfg.split)
+    check_dataset_fits(ds, cfg)  # before the run folder exists: a run that cannot start leaves nothing
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
-    ds = SceneDataset(cfg.data, cfg.split)
-    check_dataset_fits(ds, cfg)
     model = PriSMONet(cfg.model)
     ckpt = run / "checkpoint.safetensors"
     if cfg.init_from is not None and not ckpt.is_file():
         from prismonet.model.io import load_fitting, load_model
 
         load_fitting(model, load_model(cfg.init_from)[0].state_dict(), f"init_from {cfg.init_from}")
+    targets = None
+    if cfg.distill is not None and cfg.loss.w_distill > 0:
+        from prismonet.model.distill import DistillTargets
+
+        targets = DistillTargets(cfg.distill, cfg.model.num_slots)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr)
     cfg_json = json.loads(json.dumps(asdict(cfg)))
@@ -222,6 +274,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         load_optimizer(opt, tensors, meta["optimizer"])
         start, nonfinite, elapsed = meta["step"], meta["nonfinite"], meta["elapsed_s"]
+        if rank == 0:
+            _truncate_log(run / "log.jsonl", start)
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
 
     def save(step: int) -> None:
@@ -240,9 +294,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step", disable=not progress or rank != 0)
     step = start
     last = {}
-    previous_term = _interrupt_on_sigterm()
+    stop: dict = {"signal": None}
+    previous_handlers = _defer_stop_signals(stop)
     try:
         while step < cfg.steps:
+            if governor is not None:
+                governor.before_step()
             t0 = time.perf_counter()
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
@@ -252,7 +309,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
                 group["lr"] = learning_rate(cfg, step)
             net.train()
             out = net(image, batch.K, batch.T_world_cam, batch.ground_z)
-            terms = compute_losses(model, out, batch, cfg.loss, step, target_depth)
+            terms = compute_losses(model, out, batch, cfg.loss, step, target_depth,
+                                   None if targets is None else targets.lookup(idx))
             opt.zero_grad(set_to_none=True)
             if not math.isfinite(float(terms.total.detach())):
                 nonfinite += 1
@@ -264,7 +322,10 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
                     torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
                 opt.step()
             step += 1
-            elapsed += time.perf_counter() - t0
+            dt = time.perf_counter() - t0
+            elapsed += dt
+            if governor is not None:
+                governor.after_step(dt)
             last = terms.scalars()
             if rank == 0:
                 bar.update(1)
@@ -273,8 +334,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
                         writer.add_scalar(f"loss/{k}", v, step)
                     writer.add_scalar("train/nonfinite", nonfinite, step)
                     writer.add_scalar("train/lr", opt.param_groups[0]["lr"], step)
+                    writer.add_scalar("train/threads", torch.get_num_threads(), step)
                     log.write(json.dumps({"step": step, "time_s": round(elapsed, 2), "nonfinite": nonfinite,
-                                          "lr": opt.param_groups[0]["lr"], **last}) + "\n")
+                                          "lr": opt.param_groups[0]["lr"], "threads": torch.get_num_threads(), **last}) + "\n")
                     log.flush()
                     bar.set_postfix(loss=f"{last['total']:.4f}")
                 if step % cfg.image_every == 0 or step == cfg.steps:
@@ -283,14 +345,15 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
                 save(step)
             if stop_after is not None and step >= stop_after:
                 break
-    except KeyboardInterrupt:
-        save(step)  # nothing lost: rerun the same command to resume from here
-        raise
+            if stop["signal"] is not None:
+                save(step)  # nothing lost: rerun the same command to resume from here
+                raise KeyboardInterrupt(f"signal {stop['signal']}")
     finally:
-        if previous_term is not None:
+        if previous_handlers is not None:
             import signal
 
-            signal.signal(signal.SIGTERM, previous_term)
+            for s, h in previous_handlers.items():
+                signal.signal(s, h)
         bar.close()
         if writer is not None:
             writer.close()

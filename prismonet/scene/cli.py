@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from prismonet.files import write_image
+
 
 def _floats(text: str, n: int, what: str) -> list[float]:
     try:
@@ -101,8 +103,6 @@ def apply_edits(scene, ops, load_scene):
 
 
 def cmd_edit(args) -> int:
-    import cv2
-
     from prismonet.model.io import load_model
     from prismonet.scene import LatentScene, edit
     from prismonet.scene.novel_view import to_uint8
@@ -120,13 +120,12 @@ def cmd_edit(args) -> int:
     if args.render:
         img = to_uint8(scene.render(model)[0].image[0])
         Path(args.render).parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(args.render), img[..., ::-1])
+        write_image(args.render, img[..., ::-1])
         print(f"wrote {args.render}")
     return 0
 
 
 def cmd_views(args) -> int:
-    import cv2
     import torch
 
     from prismonet.geometry.camera import Camera, look_at
@@ -143,7 +142,7 @@ def cmd_views(args) -> int:
         cam = Camera(cam.K, look_at(eye, target), cam.height, cam.width)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(out / "view.png"), to_uint8(render_view(model, scene, cam)[0])[..., ::-1])
+        write_image(out / "view.png", to_uint8(render_view(model, scene, cam)[0])[..., ::-1])
         print(f"wrote {out / 'view.png'}")
         return 0
     pngs, gif = render_orbit(model, scene, args.out, args.frames, args.size, args.fps, progress=not args.quiet)
@@ -161,6 +160,8 @@ class _Op(argparse.Action):
 
 
 def add_parsers(sub) -> None:
+    from prismonet.files import MAX_IMAGE_SIDE, MAX_MESH_RESOLUTION, arg_float, arg_int
+
     ex = sub.add_parser("export", help="meshes (PLY/OBJ/GLB) and point clouds of an inferred or saved scene")
     ex.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
     ex.add_argument("--scene", help="a latent-scene JSON (from reconstruct, export or edit)")
@@ -169,9 +170,9 @@ def add_parsers(sub) -> None:
     ex.add_argument("--split", default="test")
     ex.add_argument("--objects", type=int, help="recurrent steps (default: as trained)")
     ex.add_argument("--format", default="ply", choices=["ply", "obj", "glb"])
-    ex.add_argument("--resolution", type=int, default=48, help="marching-cubes grid per object")
+    ex.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=48, help="marching-cubes grid per object")
     ex.add_argument("--out", required=True)
-    ex.set_defaults(func=cmd_export)
+    ex.set_defaults(func=cmd_export, outputs=[("out", "dir")])
 
     ed = sub.add_parser("edit", help="edit a latent scene; edits whose objects intersect (L_int) are rejected")
     ed.add_argument("scene", help="latent-scene JSON")
@@ -189,16 +190,16 @@ def add_parsers(sub) -> None:
     ed.add_argument("--allow-intersections", action="store_true", help="write the scene even if objects intersect")
     ed.add_argument("--tolerance", type=float, default=1e-3, help="L_int above this is an intersection")
     ed.add_argument("--render", help="also render the edited scene to this PNG")
-    ed.set_defaults(func=cmd_edit)
+    ed.set_defaults(func=cmd_edit, outputs=[("out", "file"), ("render", "image")])
 
     vw = sub.add_parser("views", help="render a latent scene from new viewpoints: an orbit (PNGs + GIF) or one pose")
     vw.add_argument("scene", help="latent-scene JSON")
     vw.add_argument("--out", required=True)
     vw.add_argument("--model", default="shipped")
-    vw.add_argument("--frames", type=int, default=24)
-    vw.add_argument("--size", type=int, default=128, help="square image side")
-    vw.add_argument("--fps", type=float, default=12.0)
+    vw.add_argument("--frames", type=arg_int(1, 3600), default=24)
+    vw.add_argument("--size", type=arg_int(8, MAX_IMAGE_SIDE), default=128, help="square image side")
+    vw.add_argument("--fps", type=arg_float(0.1, 240), default=12.0)
     vw.add_argument("--eye", help="X,Y,Z: one view from here instead of the orbit")
     vw.add_argument("--target", default="0,0,0", help="X,Y,Z the --eye view looks at")
     vw.add_argument("--quiet", action="store_true")
-    vw.set_defaults(func=cmd_views)
+    vw.set_defaults(func=cmd_views, outputs=[("out", "dir")])

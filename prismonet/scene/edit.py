@@ -28,9 +28,9 @@ class EditRejected(LatentSceneError):
 
 
 def _index(scene: LatentScene, k: int) -> int:
-    if not -scene.num_objects <= k < scene.num_objects:
+    if not 0 <= k < scene.num_objects:
         raise LatentSceneError(f"object {k}: the scene has objects 0..{scene.num_objects - 1}")
-    return k % scene.num_objects
+    return k
 
 
 def _set(t: torch.Tensor, k: int, value) -> torch.Tensor:

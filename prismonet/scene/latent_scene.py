@@ -148,9 +148,13 @@ class LatentScene:
             t = lambda key: torch.tensor([o[key] for o in objs], dtype=torch.float32)
             if not objs:
                 raise LatentSceneError(f"{source}: a scene file needs at least one object")
-            return LatentScene(t("z_sh"), t("z_tex"), t("position"), t("cos_sin"), t("scale"),
-                               torch.tensor(d["bg_color"], dtype=torch.float32), Camera.from_dict(d["camera"]),
-                               float(d.get("ground_z", 0.0)), str(d.get("prior_fingerprint", "")))
+            if not isinstance(objs, list) or not all(isinstance(o, dict) for o in objs):
+                raise LatentSceneError(f"{source}: 'objects' must be a list of objects")
+            scene = LatentScene(t("z_sh"), t("z_tex"), t("position"), t("cos_sin"), t("scale"),
+                                torch.tensor(d["bg_color"], dtype=torch.float32), Camera.from_dict(d["camera"]),
+                                float(d.get("ground_z", 0.0)), str(d.get("prior_fingerprint", "")))
+            _check_scene(scene, source)
+            return scene
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, LatentSceneError):
                 raise
@@ -158,11 +162,35 @@ class LatentScene:
 
     @staticmethod
     def load(path: str | Path) -> "LatentScene":
+        """Read and validate a latent-scene JSON (``save``'s format)."""
         path = Path(path)
         if not path.is_file():
             raise LatentSceneError(f"{path}: no such latent-scene file")
+        from prismonet.files import InputError, read_json
+
         try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise LatentSceneError(f"{path}: not JSON ({e})") from None
+            d = read_json(path, dict)
+        except InputError as e:
+            raise LatentSceneError(str(e)) from None
         return LatentScene.from_dict(d, str(path))
+
+
+def _check_scene(scene: "LatentScene", source: str) -> None:
+    """Values a renderer can use: finite numbers, positive scales, a yaw direction, a rigid camera."""
+    import math
+
+    for name in ("z_sh", "z_tex", "position", "cos_sin", "scale", "bg_color"):
+        if not torch.isfinite(getattr(scene, name)).all():
+            raise LatentSceneError(f"{source}: {name} holds a non-finite number")
+    if not math.isfinite(scene.ground_z):
+        raise LatentSceneError(f"{source}: ground_z is not finite")
+    if (scene.scale <= 0).any():
+        raise LatentSceneError(f"{source}: every object's scale must be positive, got {scene.scale.tolist()}")
+    if (scene.cos_sin.norm(dim=-1) < 1e-6).any():
+        raise LatentSceneError(f"{source}: an object's cos_sin is (0, 0): no yaw direction")
+    T = scene.camera.T_world_cam.double()
+    R = T[:3, :3]
+    if not torch.isfinite(T).all() or not torch.allclose(R @ R.T, torch.eye(3, dtype=R.dtype), atol=1e-4) or float(torch.det(R)) < 0:
+        raise LatentSceneError(f"{source}: camera T_world_cam is not a rigid transform (rotation part not orthonormal)")
+    if not torch.isfinite(scene.camera.K).all() or float(scene.camera.K[0, 0]) <= 0 or float(scene.camera.K[1, 1]) <= 0:
+        raise LatentSceneError(f"{source}: camera K must be finite with positive focal lengths")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.files import write_image
 from prismonet.geometry.camera import Camera, look_at, resize_intrinsics
 from prismonet.scene.latent_scene import LatentScene
 
@@ -77,7 +78,6 @@ def write_gif(frames: list[np.ndarray], path: str | Path, fps: float = 12.0) -> 
 def render_orbit(model, scene: LatentScene, out_dir: str | Path, frames: int = 24, size: int = 128,
                  fps: float = 12.0, progress: bool = True) -> tuple[list[Path], Path]:
     """Render an orbit into ``out_dir``: ``view_<i>.png`` per frame and ``orbit.gif``."""
-    import cv2
     from tqdm import tqdm
 
     out = Path(out_dir)
@@ -87,5 +87,5 @@ def render_orbit(model, scene: LatentScene, out_dir: str | Path, frames: int = 2
         img = to_uint8(render_view(model, scene, cam)[0])
         frames_u8.append(img)
         pngs.append(out / f"view_{i:03d}.png")
-        cv2.imwrite(str(pngs[-1]), img[..., ::-1])
+        write_image(pngs[-1], img[..., ::-1])
     return pngs, write_gif(frames_u8, out / "orbit.gif", fps)

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from prismonet.files import write_image
+
 INSTANCE_PALETTE = np.array(
     [(0, 0, 0), (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48),
      (145, 30, 180), (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)],
@@ -70,7 +72,7 @@ def contact_sheet(arrays: dict[str, np.ndarray], path: str | Path, upscale: int 
         sheet[y : y + th, x : x + tw] = tile
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), sheet[..., ::-1]):
+    if not write_image(path, sheet[..., ::-1]):
         raise OSError(f"{path}: could not write the PNG")
     return path
 

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.files import write_image
+
 
 def _u8(img: torch.Tensor) -> np.ndarray:
     return (img.detach().clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
@@ -65,5 +67,5 @@ def decomposition_figure(image: torch.Tensor, out, index: int, path: str | Path,
     sheet = np.concatenate([lines[0], np.full((gap, lines[0].shape[1], 3), 255, np.uint8), lines[1]], axis=0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), sheet[..., ::-1])
+    write_image(path, sheet[..., ::-1])
     return path
