@@ -14,6 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+SUBPIX_WINDOW = (11, 11)
+SUBPIX_CRITERIA = (3, 30, 1e-3)  # cv2.TERM_CRITERIA_EPS + MAX_ITER, 30 iterations, 1e-3 px
+
 
 @dataclass(frozen=True)
 class Chessboard:
@@ -34,8 +37,6 @@ class Chessboard:
 
     def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """``(object points (N, 3), image points (N, 2))`` or ``None`` when the board is not found."""
-        from calibration.intrinsics import find_corners
-
         corners = find_corners(gray, self)
         return None if corners is None else (self.object_points(), corners)
 
@@ -106,3 +107,16 @@ class Charuco:
         img = self.cv_board().generateImage((self.squares_x * p + 2 * m, self.squares_y * p + 2 * m), marginSize=m)
         S = np.array([[p / self.square, 0, m - 0.5], [0, p / self.square, m - 0.5], [0, 0, 1]])
         return img, S
+
+
+def find_corners(gray: np.ndarray, board: "Chessboard") -> np.ndarray | None:
+    """Sub-pixel inner corners ``(N, 2)`` float32, or ``None`` when the board is not found.
+
+    (OpenCV 4 returns ``(N, 1, 2)`` and OpenCV 5 ``(N, 2)``; this always gives ``(N, 2)``.)"""
+    import cv2
+
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH + cv2.CALIB_CB_NORMALIZE_IMAGE
+    ok, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows), flags=flags)
+    if not ok:
+        return None
+    return cv2.cornerSubPix(gray, corners, SUBPIX_WINDOW, (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)

@@ -11,8 +11,6 @@ import numpy as np
 
 from calibration.board import Chessboard
 
-SUBPIX_WINDOW = (11, 11)
-SUBPIX_CRITERIA = (3, 30, 1e-3)  # cv2.TERM_CRITERIA_EPS + MAX_ITER, 30 iterations, 1e-3 px
 MIN_VIEWS = 3
 """Fewer detected boards than this cannot constrain the intrinsics."""
 
@@ -35,19 +33,6 @@ class Calibration:
     image_size: tuple[int, int]
     rms: float
     per_image: list[dict] = field(default_factory=list)
-
-
-def find_corners(gray: np.ndarray, board: Chessboard) -> np.ndarray | None:
-    """Sub-pixel inner corners ``(N, 2)`` float32, or ``None`` when the board is not found.
-
-    (OpenCV 4 returns ``(N, 1, 2)`` and OpenCV 5 ``(N, 2)``; this always gives ``(N, 2)``.)"""
-    import cv2
-
-    flags = cv2.CALIB_CB_ADAPTIVE_THRESH + cv2.CALIB_CB_NORMALIZE_IMAGE
-    ok, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows), flags=flags)
-    if not ok:
-        return None
-    return cv2.cornerSubPix(gray, corners, SUBPIX_WINDOW, (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)
 
 
 def calibrate_images(images: list[np.ndarray], board, names: list[str] | None = None,

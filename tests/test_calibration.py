@@ -50,7 +50,7 @@ def test_synthetic_boards_give_the_true_intrinsics():
     # the true camera has no distortion. The fitted coefficients (k3 is weakly constrained and soaks
     # up detection noise) must move no observed corner by more than a fraction of a pixel; outside
     # the area the boards cover (the image corners) the fit is an extrapolation and is not checked.
-    from calibration.intrinsics import find_corners
+    from calibration.board import find_corners
 
     pts = np.concatenate([find_corners(im, BOARD) for im in imgs]).astype(np.float64)[:, None]
     moved = cv2.undistortPoints(pts, cal.K, cal.dist, P=cal.K).reshape(-1, 2)
@@ -75,7 +75,7 @@ def test_ground_plane_pose_from_one_photo():
     corners_world = (np.diag([1.0, -1.0, -1.0]) @ BOARD.object_points().T).T
     assert np.allclose(corners_world[:, 2], 0)
     uv = cam.world_to_pixels(torch.tensor(corners_world, dtype=torch.float64)).numpy()
-    from calibration.intrinsics import find_corners
+    from calibration.board import find_corners
 
     assert np.abs(uv - find_corners(imgs[0], BOARD)).max() < 0.5
 
