@@ -79,3 +79,15 @@ def test_training_uses_the_targets(tmp_path, monkeypatch):
     train(cfg, tmp_path / "run", progress=False)
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert all(r["distill"] > 0 for r in rows)
+
+
+def test_batch_rows_follow_the_indices_asked_for():
+    """Row j of a batch is scene indices[j] (the trainer looks targets up by the same indices;
+    ``batch`` once sorted them silently, so every target landed on another scene)."""
+    from prismonet.data.dataset import SceneDataset
+
+    ds = SceneDataset(shipped_samples(), split="test")
+    idx = [5, 2, 9, 2]
+    b = ds.batch(idx)
+    for j, i in enumerate(idx):
+        assert torch.equal(b.rgb[j], ds.batch([i]).rgb[0])
