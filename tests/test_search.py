@@ -136,3 +136,29 @@ def test_sweep_script_refuses_a_bad_setting_in_one_line(setting, message):
     assert r.returncode == 2
     last = r.stderr.strip().splitlines()[-1]
     assert message in last and "Traceback" not in r.stderr
+
+
+def test_shape_trials_recover_the_right_category(shipped):
+    """Target: every slot drawn with a cube code of the prior; start: the same poses with a
+    cylinder code, the target's cube code being the cube code nearest to it. With shape trials
+    every visible slot ends on exactly that cube code and the scene is fitted exactly; without them
+    the shape latents are untouched."""
+    model, _, out = shipped
+    p, bg = out.latents.params, out.latents.bg_color
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    codes, cats = model.prior.latents, torch.as_tensor(model.prior.category_ids)
+    cylinder = codes[cats == 1][0]
+    cube = codes[cats == 2][torch.cdist(cylinder[None], codes[cats == 2]).argmin()]  # the cube code the trial tries
+    truth = _with(p, z_sh=cube.expand_as(p.z_sh).clone())
+    target = _rendered_target(model, b, truth, bg)
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        start = render_latents(model, _with(p, z_sh=cylinder.expand_as(p.z_sh).clone()), bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    only_shapes = dict(scales=(), shifts=(), yaws=(), rounds=1)
+    plain = search_latents(model, start, b, SearchConfig(**only_shapes))
+    assert torch.equal(plain.latents.params.z_sh, start.latents.params.z_sh)
+    found = search_latents(model, start, b, SearchConfig(shape_trials=True, **only_shapes))
+    visible = torch.stack([(target.composite.instance == k + 1).flatten(1).any(1) for k in range(3)], 1)
+    z = found.latents.params.z_sh
+    assert torch.allclose(z[visible], cube.expand(int(visible.sum()), -1))
+    assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)

@@ -38,6 +38,10 @@ class SearchConfig:
     multiplied by ``decay ** r`` and scale multipliers raised to that power in pass ``r``."""
     w_image: float = 1.0
     w_depth: float = 0.1
+    shape_trials: bool = False
+    """Also try, once per slot in the first pass, the prior's training code nearest to the slot's
+    shape latent within each shape category (sphere, cylinder, cube for Clevr): the encoder's
+    latents drift towards one category (cubes come out nearest a cylinder code, EVALUATION.md)."""
 
     def __post_init__(self) -> None:
         if self.rounds < 0 or any(s <= 0 for s in self.scales) or self.w_image < 0 or self.w_depth < 0 or not 0 < self.decay <= 1:
@@ -71,7 +75,7 @@ def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch
 def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchConfig(), use_depth: bool = True) -> ModelOutput:
     """``out`` (the model's output on ``batch``) with each slot's scale, position and yaw improved by
     coordinate search; every scene's score is at most the one it started with."""
-    if cfg.rounds == 0 or cfg.trials_per_slot == 0:
+    if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials):
         return out
     p = out.latents.params
     B, N = p.scale.shape
@@ -79,30 +83,44 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
     bg = out.latents.bg_color
     depth, mask, color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
-    scale, position, cos_sin = p.scale.clone(), p.position.clone(), p.cos_sin.clone()
+    scale, position, cos_sin, z_sh = p.scale.clone(), p.position.clone(), p.cos_sin.clone(), p.z_sh.clone()
     comp = composite(depth, mask, color, bg, out.bg_depth)
     best = fit_score(comp.image, comp.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth)
     settings = model.render_settings()
     one = lambda t, k: None if t is None else t[:, k : k + 1]
+    codes = model.prior.latents.to(p.z_sh.dtype)
+    cats = torch.as_tensor(model.prior.category_ids)
+
+    def attempt(k, z_try, s_try, p_try, cs_try):
+        """Render slot ``k`` alone with the trial latents, keep them per scene where the score falls."""
+        nonlocal best
+        s_try = s_try.clamp(max=model.cfg.scale_range[1])  # the encoder's own bound
+        q = SceneParams(z_try[:, None], one(p.z_tex, k), p_try[:, None], cs_try[:, None], s_try[:, None], one(p.axis, k))
+        obj = render_objects(model.sdf_fn, model.color_fn, q, batch.K, batch.T_world_cam, H, W, settings)
+        d_try, m_try, c_try = depth.clone(), mask.clone(), color.clone()
+        d_try[:, k], m_try[:, k], c_try[:, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
+        c = composite(d_try, m_try, c_try, bg, out.bg_depth)
+        score = fit_score(c.image, c.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth)
+        win = score < best
+        best = torch.where(win, score, best)
+        w = win.view(B, 1, 1)
+        depth[:, k] = torch.where(w, d_try[:, k], depth[:, k])
+        mask[:, k] = torch.where(w, m_try[:, k], mask[:, k])
+        color[:, k] = torch.where(w[:, None], c_try[:, k], color[:, k])
+        scale[:, k] = torch.where(win, s_try, scale[:, k])
+        position[:, k] = torch.where(win[:, None], p_try, position[:, k])
+        cos_sin[:, k] = torch.where(win[:, None], cs_try, cos_sin[:, k])
+        z_sh[:, k] = torch.where(win[:, None], z_try, z_sh[:, k])
+
     for r in range(cfg.rounds):
         for k in range(N):
+            if cfg.shape_trials and r == 0:
+                for c in torch.unique(cats):
+                    sel = codes[cats == c]  # (n_c, D)
+                    nearest = sel[torch.cdist(z_sh[:, k], sel).argmin(1)]  # (B, D)
+                    attempt(k, nearest, scale[:, k], position[:, k], cos_sin[:, k])
             for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, scale[:, k], position[:, k], cos_sin[:, k]):
-                s_try = s_try.clamp(max=model.cfg.scale_range[1])  # the encoder's own bound
-                q = SceneParams(one(p.z_sh, k), one(p.z_tex, k), p_try[:, None], cs_try[:, None], s_try[:, None], one(p.axis, k))
-                obj = render_objects(model.sdf_fn, model.color_fn, q, batch.K, batch.T_world_cam, H, W, settings)
-                d_try, m_try, c_try = depth.clone(), mask.clone(), color.clone()
-                d_try[:, k], m_try[:, k], c_try[:, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
-                c = composite(d_try, m_try, c_try, bg, out.bg_depth)
-                score = fit_score(c.image, c.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth)
-                win = score < best
-                best = torch.where(win, score, best)
-                w = win.view(B, 1, 1)
-                depth[:, k] = torch.where(w, d_try[:, k], depth[:, k])
-                mask[:, k] = torch.where(w, m_try[:, k], mask[:, k])
-                color[:, k] = torch.where(w[:, None], c_try[:, k], color[:, k])
-                scale[:, k] = torch.where(win, s_try, scale[:, k])
-                position[:, k] = torch.where(win[:, None], p_try, position[:, k])
-                cos_sin[:, k] = torch.where(win[:, None], cs_try, cos_sin[:, k])
-    params = SceneParams(p.z_sh, p.z_tex, position, cos_sin, scale, p.axis, p.active)
+                attempt(k, z_sh[:, k], s_try, p_try, cs_try)
+    params = SceneParams(z_sh, p.z_tex, position, cos_sin, scale, p.axis, p.active)
     comp = composite(depth, mask, color, bg, out.bg_depth)
     return ModelOutput(SceneLatents(params, bg), comp, depth, mask, color, out.bg_depth, None, slot_steps=out.slot_steps)
