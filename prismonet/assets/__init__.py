@@ -7,7 +7,10 @@ from importlib import resources
 from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json``."""
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (the 60K-step
+model of ``configs/clevr3_shipped.json`` plus 4K steps of self-distillation, ``configs/clevr3_distill.json``)."""
+PREVIOUS_MODEL = "clevr3_60k_model"
+"""The 60K-step model it was distilled from (shipped until 2026-11-23; what ``configs/clevr3_distill.json`` starts from)."""
 SHIPPED_SAMPLES = "samples/clevr3"
 """16 scenes of the 3-object test split (packed, split ``test``)."""
 
