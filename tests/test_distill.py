@@ -91,3 +91,15 @@ def test_batch_rows_follow_the_indices_asked_for():
     b = ds.batch(idx)
     for j, i in enumerate(idx):
         assert torch.equal(b.rgb[j], ds.batch([i]).rgb[0])
+
+
+def test_weights_digest_tells_models_apart():
+    from prismonet.model.distill import weights_digest
+    from prismonet.model.io import load_model
+
+    a, _ = load_model("shipped")
+    b, _ = load_model("shipped")
+    assert weights_digest(a) == weights_digest(b) and len(weights_digest(a)) == 16
+    with torch.no_grad():
+        next(b.parameters()).view(-1)[0] += 1e-3
+    assert weights_digest(a) != weights_digest(b)

@@ -47,6 +47,18 @@ class DistillWeights:
     """L1 of the background colour (RGB summed)."""
 
 
+def weights_digest(model) -> str:
+    """SHA-256 (first 16 hex digits) of a model's weights: targets made by different weights never mix,
+    even under one name (``shipped`` changes when a new model ships)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().contiguous().cpu().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
 def fit_targets(model, ds, out_dir: str | Path, count: int, search_cfg, color_cfg, batch_size: int = 16,
                 progress: bool = True, meta: dict | None = None) -> dict:
     """Fit targets for scenes ``0 .. count-1`` of ``ds`` into ``out_dir`` (resumable). Returns a summary."""

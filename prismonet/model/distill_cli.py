@@ -9,7 +9,7 @@ def cmd_distill(args) -> int:
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.color_fit import ColorFitConfig
-    from prismonet.model.distill import fit_targets
+    from prismonet.model.distill import fit_targets, weights_digest
     from prismonet.model.io import load_model
     from prismonet.model.search import SearchConfig
 
@@ -20,7 +20,7 @@ def cmd_distill(args) -> int:
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds)
     count = len(ds) if args.count is None else args.count
-    meta = {"model": str(args.checkpoint), "data": str(args.data), "split": args.split}
+    meta = {"model": str(args.checkpoint), "model_digest": weights_digest(model), "data": str(args.data), "split": args.split}
     s = fit_targets(model, ds, args.out, count, search_cfg, color_cfg, batch_size=args.batch, progress=not args.quiet, meta=meta)
     extra = f"; fit score {s['score_before']:.4f} -> {s['score_after']:.4f} on the chunks made now" if "score_before" in s else ""
     print(f"distillation targets for {s['scenes']} scenes of {args.data} [{args.split}] in {args.out}{extra}")
