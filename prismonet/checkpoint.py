@@ -14,6 +14,8 @@ from pathlib import Path
 
 import torch
 
+from prismonet.files import pid_alive
+
 META_KEY = "prismonet"
 
 
@@ -49,7 +51,7 @@ def save_checkpoint(path: str | Path, tensors: dict[str, torch.Tensor], meta: di
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     for stale in path.parent.glob(f".{path.name}.tmp-*"):  # left by a process killed while saving
-        if stale.name != f".{path.name}.tmp-{os.getpid()}" and not _pid_alive(stale.name.rsplit("-", 1)[-1]):
+        if stale.name != f".{path.name}.tmp-{os.getpid()}" and not pid_alive(stale.name.rsplit("-", 1)[-1]):
             stale.unlink(missing_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
@@ -67,16 +69,6 @@ def save_checkpoint(path: str | Path, tensors: dict[str, torch.Tensor], meta: di
             pass  # some file systems cannot sync a folder
     finally:
         tmp.unlink(missing_ok=True)
-
-
-def _pid_alive(text: str) -> bool:
-    try:
-        os.kill(int(text), 0)
-    except (ValueError, ProcessLookupError):
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def load_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:

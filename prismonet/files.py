@@ -42,7 +42,18 @@ def shown(path) -> str:
     return os.fsencode(path).decode("utf-8", "backslashreplace")
 
 
-def _probe_writable(folder: Path, what: Path) -> None:
+def pid_alive(pid) -> bool:
+    """Whether a process with this id runs (for files a killed process left: ``NAME.tmp-PID``)."""
+    try:
+        os.kill(int(pid), 0)
+    except (ValueError, ProcessLookupError):
+        return False
+    except PermissionError:  # it runs, as another user
+        return True
+    return True
+
+
+def probe_writable(folder: Path, what: Path) -> None:
     """Raise unless a file can be created in ``folder`` or, if it does not exist yet, in the
     nearest existing folder above it (where it would be made)."""
     f = folder
@@ -51,13 +62,13 @@ def _probe_writable(folder: Path, what: Path) -> None:
             break
         f = f.parent
     if not f.is_dir():
-        raise InputError(f"{shown(what)}: cannot be created, {shown(f)} is a file, not a folder")
+        raise InputError(f"{shown(what)}: is not writable ({shown(f)} is a file, not a folder)")
     try:
         fd, probe = tempfile.mkstemp(dir=f, prefix=".prismonet-probe-")
         os.close(fd)
         os.unlink(probe)
     except OSError as e:
-        raise InputError(f"{shown(what)}: cannot be written ({e.strerror or e} in {shown(f)})") from None
+        raise InputError(f"{shown(what)}: is not writable ({e.strerror or e} in {shown(f)})") from None
 
 
 def check_output(path, kind: str = "file") -> Path:
@@ -73,13 +84,13 @@ def check_output(path, kind: str = "file") -> Path:
 
             if not p.suffix or not cv2.haveImageWriter(str(p.with_name("x" + p.suffix))):
                 raise InputError(f"{shown(p)}: OpenCV cannot write images of type {p.suffix or '(no extension)'!r}; use .png or .jpg")
-        _probe_writable(p.parent, p)
+        probe_writable(p.parent, p)
     elif kind in ("dir", "new_dir"):
         if p.exists() and not p.is_dir():
             raise InputError(f"{shown(p)}: exists and is not a folder")
         if kind == "new_dir" and p.is_dir() and any(p.iterdir()):
             raise InputError(f"{shown(p)}: output folder is not empty")
-        _probe_writable(p, p)
+        probe_writable(p, p)
     else:
         raise ValueError(f"check_output: unknown kind {kind!r}")
     return p

@@ -44,14 +44,12 @@ def _die_with_parent() -> None:
 
 def _remove_stale_partials(out: Path) -> None:
     """Remove hidden partial folders of earlier runs for ``out`` whose process is gone (killed)."""
+    from prismonet.files import pid_alive
+
     for p in out.parent.glob(f".{out.name}.partial-*"):
-        try:
-            pid = int(p.name.rsplit("-", 1)[1])
-            os.kill(pid, 0)  # still running: leave it
-        except ProcessLookupError:
+        pid = p.name.rsplit("-", 1)[1]
+        if pid.isdigit() and not pid_alive(pid):
             shutil.rmtree(p, ignore_errors=True)
-        except (ValueError, PermissionError):
-            continue
 
 
 def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, np.ndarray]:
@@ -86,27 +84,18 @@ def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, 
 
 
 def check_output_dir(out: Path) -> None:
-    """Raise ``OutputDirError`` unless ``out`` is a new or empty folder whose parent we can write.
+    """Raise ``OutputDirError`` unless ``out`` is a new or empty folder that can be written, in a
+    folder that can be written too (the data are written beside it, then renamed into place).
+    Writability is probed by creating a file (``prismonet.files``), which also catches read-only file
+    systems and root, for whom ``os.access`` always says yes."""
+    from prismonet.files import InputError, check_output, probe_writable
 
-    Writability is probed by creating a file, not with ``os.access``: that also catches read-only
-    file systems, and root, for whom ``os.access`` always says yes.
-    """
-    import tempfile
-
-    if out.exists():
-        if not out.is_dir():
-            raise OutputDirError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()):
-            raise OutputDirError(f"{out}: output folder is not empty")
-    parent = out.parent
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        for folder in ([out] if out.exists() else []) + [parent]:  # an existing empty --out must be writable too
-            fd, probe = tempfile.mkstemp(dir=folder, prefix=".prismonet-probe-")
-            os.close(fd)
-            os.unlink(probe)
-    except OSError as e:
-        raise OutputDirError(f"{out}: output folder is not writable ({e.strerror or e})") from None
+        check_output(out, "new_dir")
+        if out.exists():
+            probe_writable(out.parent, out)
+    except InputError as e:
+        raise OutputDirError(str(e)) from None
 
 
 def generate_clevr(

@@ -55,26 +55,41 @@ def scene_detection(pred_instance: np.ndarray, gt_instance: np.ndarray, threshol
     # disjoint masks: IoU > 0.5 with two partners is impossible, so the matching is unique
     pairs = [(int(pid[p]), int(gid[g])) for p, g in zip(*np.nonzero(iou > threshold))]
     tp = len(pairs)
-    precision = tp / len(pid) if len(pid) else float(len(gid) == 0)
-    recall = tp / len(gid) if len(gid) else 1.0
-    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    precision, recall, f1 = _rates(tp, len(pid), len(gid))
     return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "n_pred": len(pid), "n_gt": len(gid), "pairs": pairs}
+
+
+def _rates(tp: int, n_pred: int, n_gt: int) -> tuple[float, float, float]:
+    """Precision, recall and F1 of one scene (no predictions: precision 1 only with no objects)."""
+    precision = tp / n_pred if n_pred else float(n_gt == 0)
+    recall = tp / n_gt if n_gt else 1.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return precision, recall, f1
 
 
 def detection_metrics(pred_instances: np.ndarray, gt_instances: np.ndarray) -> dict:
     """AP0.5, AR0.5, F1_0.5, mAP over 0.5:0.95, allObj, over scenes ``(N, H, W)``: with predictions
     under ``MIN_VISIBLE_PIXELS`` ignored, and again with every prediction counted (keys ending in
     ``_unfiltered``)."""
+    ts = np.asarray(IOU_THRESHOLDS)  # ts[0] = 0.5
+    ways = (("", MIN_VISIBLE_PIXELS), ("_unfiltered", 1))
+    rates: dict[str, list] = {suffix: [] for suffix, _ in ways}  # per scene: (thresholds, 3)
+    for p, g in zip(pred_instances, gt_instances):
+        gid, gm = instance_masks(g)  # masks and IoU once per scene and way, then every threshold
+        for suffix, min_px in ways:
+            pid, pm = instance_masks(p, min_px)
+            iou = iou_matrix(pm, gm) if len(pid) and len(gid) else np.zeros((len(pid), len(gid)))
+            tp = (iou[None] > ts[:, None, None]).sum((1, 2))  # unique matching, as in scene_detection
+            rates[suffix].append([_rates(int(t), len(pid), len(gid)) for t in tp])
     out = {}
-    for suffix, min_px in (("", MIN_VISIBLE_PIXELS), ("_unfiltered", 1)):
-        per_t = {t: [scene_detection(p, g, t, min_px) for p, g in zip(pred_instances, gt_instances)] for t in IOU_THRESHOLDS}
-        s05 = per_t[0.5]
+    for suffix, r in rates.items():
+        a = np.asarray(r, dtype=np.float64).reshape(-1, len(ts), 3)
         out.update({
-            f"AP0.5{suffix}": float(np.mean([s["precision"] for s in s05])),
-            f"AR0.5{suffix}": float(np.mean([s["recall"] for s in s05])),
-            f"F1_0.5{suffix}": float(np.mean([s["f1"] for s in s05])),
-            f"mAP{suffix}": float(np.mean([np.mean([s["precision"] for s in per_t[t]]) for t in IOU_THRESHOLDS])),
-            f"allObj{suffix}": float(np.mean([s["recall"] == 1.0 for s in s05])),
+            f"AP0.5{suffix}": float(a[:, 0, 0].mean()),
+            f"AR0.5{suffix}": float(a[:, 0, 1].mean()),
+            f"F1_0.5{suffix}": float(a[:, 0, 2].mean()),
+            f"mAP{suffix}": float(a[:, :, 0].mean(0).mean()),
+            f"allObj{suffix}": float((a[:, 0, 1] == 1.0).mean()),
         })
     return out
 

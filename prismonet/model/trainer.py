@@ -161,8 +161,8 @@ def _defer_stop_signals(stop: dict):
             raise KeyboardInterrupt(f"signal {signum} (second)")
         stop["signal"] = signum
 
-    return {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)
-            if signal.getsignal(s) is not signal.SIG_IGN or s == signal.SIGTERM}
+    wanted = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else [])
+    return {s: signal.signal(s, handler) for s in wanted}
 
 
 def _truncate_log(path: Path, step: int) -> None:
