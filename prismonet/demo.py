@@ -11,7 +11,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import torch
 
 
 def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, gt_depth) -> dict:
@@ -24,47 +23,36 @@ def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, 
     return m
 
 
-@torch.no_grad()
 def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", data: str | Path | None = None,
-             refine_steps: int = 0, progress: bool = True, search_rounds: int = 0,
-             color_fit_steps: int = 0) -> dict:
+             inference=None, progress: bool = True) -> dict:
     """Run the demo into ``out``; returns ``{"scenes": [...per-scene records], "mean": {...}}``.
 
-    ``search_rounds > 0`` searches each slot's scale, position and yaw against the scene's RGB-D
-    (``prismonet.model.search``) before any refinement; ``color_fit_steps > 0`` fits the colours
-    last, geometry held (``prismonet.model.color_fit``)."""
+    ``inference``: the test-time steps after the encoder (an ``InferenceConfig``; default: none, the
+    paper's feed-forward decoding)."""
     from tqdm import tqdm
 
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
-    from prismonet.model.color_fit import ColorFitConfig, fit_colors
+    from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
-    from prismonet.model.refine import RefineConfig, refine
-    from prismonet.model.search import SearchConfig, search_latents
     from prismonet.scene import LatentScene
     from prismonet.viz.decomposition import decomposition_figure
 
+    cfg = inference or InferenceConfig()
+    if scenes <= 0:
+        raise ValueError(f"--scenes must be positive, got {scenes}")
     out = Path(out)
     net, info = load_model(model)
     ds = SceneDataset(shipped_samples() if data is None else data, split="test")
     check_compatible(net, info, ds)
     n = min(scenes, len(ds))
-    if n <= 0:
-        raise ValueError(f"--scenes must be positive, got {scenes}")
-    refine_cfg = RefineConfig(refine_steps)  # validates the step count
-    search_cfg = SearchConfig(rounds=search_rounds)  # validates the round count
-    color_cfg = ColorFitConfig(color_fit_steps)
     fp = prior_fingerprint(net.prior)
+    loss_cfg = training_loss_config(info)
     records = []
     for i in tqdm(range(n), desc="demo", unit="scene", disable=not progress):
         b = ds.batch([i])
-        o = net(b.rgb, b.K, b.T_world_cam, b.ground_z)
-        if search_rounds > 0:
-            o = search_latents(net, o, b, search_cfg)
-        if refine_steps > 0:
-            o = refine(net, o, b, training_loss_config(info), refine_cfg)
-        o = fit_colors(net, o, b, color_cfg)
+        o = infer(net, b, cfg, loss_cfg)
         name = f"scene_{i:03d}"
         fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", b.depth)
         LatentScene.from_output(o, b, 0, fp).save(out / f"{name}.json")
@@ -73,8 +61,7 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
         records.append({"scene": name, "figure": str(fig), "latent_scene": str(out / f"{name}.json"), **m})
     keys = [k for k in records[0] if isinstance(records[0][k], float)]
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}
-    result = {"model": str(model), "search_rounds": search_rounds, "refine_steps": refine_steps,
-              "color_fit_steps": color_fit_steps, "scenes": records, "mean": mean}
+    result = {"model": str(model), "inference": cfg.record(), "steps": cfg.describe(), "scenes": records, "mean": mean}
     (out / "metrics.json").write_text(json.dumps(result, indent=1))
     return result
 

@@ -5,13 +5,10 @@ The camera: with a calibration that has a ground pose (``prismonet calibrate gro
 own camera and table plane. Without one, the photo is cropped and resized to the model's input
 size and taken to be seen by the model's training camera, as the paper did with its real photos.
 An object is "found" when at least ``min_pixels`` pixels of it are visible in the composed render
-(the evaluation's 25-pixel rule). ``refine_steps > 0`` refines the encoder's latents against the
-photo (image term only: a photo has no depth) before anything is written; the summary records the
-render's PSNR against the prepared photo before and after. ``extra_slots > 0`` decodes that many more
-encoder steps and keeps the slots whose composition best matches the photo (``prismonet.model.select``).
-``search_rounds > 0`` then searches each slot's scale, position and yaw against the photo
-(``prismonet.model.search``, colour only), before any refinement. ``color_fit_steps > 0`` fits the
-texture latents and background colour to the photo last, geometry held (``prismonet.model.color_fit``).
+(the evaluation's 25-pixel rule). ``inference`` gives the test-time steps after the encoder
+(``prismonet.model.inference``: extra slots, pose search, refinement, colour fit), each run against
+the photo's colour alone (a photo has no depth); the summary records the render's PSNR against the
+prepared photo after each step that ran.
 """
 
 from __future__ import annotations
@@ -35,28 +32,21 @@ def found_objects(instance: torch.Tensor, num_slots: int, min_pixels: int = MIN_
 def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | Path = "shipped", calibration: str | Path | None = None,
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
-                       resolution: int = 40, refine_steps: int = 0, extra_slots: int = 0, search_rounds: int = 0,
-                       color_fit_steps: int = 0, progress: bool = True) -> list[dict]:
+                       resolution: int = 40, inference=None, progress: bool = True) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``)."""
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.metrics import image_metrics
-    from prismonet.model.color_fit import ColorFitConfig, fit_colors
+    from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
-    from prismonet.model.refine import RefineConfig, refine
-    from prismonet.model.search import SearchConfig, search_latents
-    from prismonet.model.select import check_extra_slots, decode_overcomplete
     from prismonet.scene import LatentScene
     from prismonet.scene.export import scene_mesh, write_mesh
     from prismonet.viz.decomposition import decomposition_figure
     from realdata.io import load_photo
     from realdata.pipeline import prepare_photos
 
-    refine_cfg = RefineConfig(refine_steps)  # validates the step count before any work
-    search_cfg = SearchConfig(rounds=search_rounds)
-    color_cfg = ColorFitConfig(color_fit_steps)
-    check_extra_slots(extra_slots)
+    cfg = (inference or InferenceConfig()).without_depth()  # a photo has no depth
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
     prepared = out / "prepared"
@@ -74,18 +64,12 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
             b.K[:] = train_cam.K
             b.T_world_cam[:] = train_cam.T_world_cam
             b.ground_z[:] = train_ground
-        with torch.no_grad():
-            o = decode_overcomplete(net, b, extra=extra_slots, use_depth=False, w_image=loss_cfg.w_image)
-        psnr = {"encoder": image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]}
-        if search_rounds > 0:
-            o = search_latents(net, o, b, search_cfg, use_depth=False)
-            psnr["searched"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
-        if refine_steps > 0:
-            o = refine(net, o, b, loss_cfg, refine_cfg, use_depth=False)
-            psnr["refined"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
-        if color_fit_steps > 0:
-            o = fit_colors(net, o, b, color_cfg)
-            psnr["color_fit"] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
+        psnr = {}
+
+        def score(step, o, b=b):
+            psnr[step] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
+
+        o = infer(net, b, cfg, loss_cfg, on_step=score)
         name = ds.names[i]
         rec = by_name[name]
         photo = load_photo(rec["photo"])
@@ -101,9 +85,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "calibrated ground pose" if has_ground else "model's training camera (assumed)",
-                        "finite": finite, "psnr": psnr, "refine_steps": refine_steps,
-                        "extra_slots": extra_slots, "search_rounds": search_rounds,
-                        "color_fit_steps": color_fit_steps, "prepare": rec})
+                        "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 

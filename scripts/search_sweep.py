@@ -22,6 +22,7 @@ import torch
 from prismonet.data.dataset import SceneDataset
 from prismonet.evaluation.evaluate import evaluate_model
 from prismonet.model.color_fit import ColorFitConfig
+from prismonet.model.inference import InferenceConfig
 from prismonet.model.io import load_model, training_loss_config
 from prismonet.model.refine import RefineConfig
 from prismonet.model.search import SearchConfig
@@ -61,7 +62,7 @@ def main() -> None:
         for text, search_cfg, refine_cfg, color_cfg in runs:
             with torch.no_grad():
                 r = evaluate_model(model, ds, limit=args.limit, progress=False, loss_cfg=training_loss_config(info),
-                                   refine_cfg=refine_cfg, search_cfg=search_cfg, color_cfg=color_cfg)
+                                   inference=InferenceConfig(search=search_cfg, refine=refine_cfg, color_fit=color_cfg))
             times[text].append(r["seconds_per_scene"])
             print(json.dumps({"setting": text, "pass": p + 1, "refine": refine_cfg.steps, "fit_color": color_cfg.steps,
                               **{k: round(r[k], 4) for k in KEYS}}), flush=True)

@@ -1,6 +1,7 @@
 """Self-distillation: targets from the test-time fit (resumable, chunked), their lookup and the loss."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -8,7 +9,9 @@ import torch
 import prismonet.model.distill as distill
 from prismonet.assets import shipped_samples
 from prismonet.model.color_fit import ColorFitConfig
-from prismonet.model.distill import DistillError, DistillTargets, DistillWeights, distill_loss, fit_targets
+from prismonet.model.inference import InferenceConfig
+from prismonet.model.distill import DistillError, DistillTargets, DistillWeights, distill_loss
+from prismonet.model.distill_fit import fit_targets
 from prismonet.model.search import SearchConfig
 from prismonet.render import SceneParams
 
@@ -37,14 +40,14 @@ def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
     monkeypatch.setattr(distill, "CHUNK", 2)
     model, _ = load_model("shipped")
     ds = SceneDataset(shipped_samples(), split="test")
-    search, color = SearchConfig(rounds=1), ColorFitConfig(steps=2)
-    s = fit_targets(model, ds, tmp_path / "t", 3, search, color, batch_size=2, progress=False)
+    cfg = InferenceConfig(search=SearchConfig(rounds=1), color_fit=ColorFitConfig(steps=2))
+    s = fit_targets(model, ds, tmp_path / "t", 3, cfg, batch_size=2, progress=False)
     assert s["score_after"] <= s["score_before"]  # the fit never makes a scene worse
     files = sorted(p.name for p in (tmp_path / "t").glob("chunk_*.safetensors"))
     assert files == ["chunk_00000.safetensors", "chunk_00001.safetensors"]
     first = (tmp_path / "t" / files[0]).stat().st_mtime_ns
     (tmp_path / "t" / files[1]).unlink()  # as if interrupted during the second chunk
-    s = fit_targets(model, ds, tmp_path / "t", 3, search, color, batch_size=2, progress=False)
+    s = fit_targets(model, ds, tmp_path / "t", 3, cfg, batch_size=2, progress=False)
     assert (tmp_path / "t" / files[0]).stat().st_mtime_ns == first  # a finished chunk is kept, not redone
     assert (tmp_path / "t" / files[1]).is_file()
     t = DistillTargets(tmp_path / "t", num_slots=3)
@@ -52,13 +55,15 @@ def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
     tg, mask = t.lookup(torch.tensor([2, 0, 7]))
     assert mask.tolist() == [1.0, 1.0, 0.0] and torch.equal(tg["scale"][0], t.t["scale"][2])
     with pytest.raises(DistillError, match="other settings"):
-        fit_targets(model, ds, tmp_path / "t", 3, SearchConfig(rounds=2), color, progress=False)
+        fit_targets(model, ds, tmp_path / "t", 3, replace(cfg, search=SearchConfig(rounds=2)), progress=False)
     with pytest.raises(DistillError, match="slots"):
         DistillTargets(tmp_path / "t", num_slots=4)
     with pytest.raises(DistillError, match="no distillation targets"):
         DistillTargets(tmp_path / "missing", num_slots=3)
     with pytest.raises(DistillError, match="count"):
-        fit_targets(model, ds, tmp_path / "u", 0, search, color, progress=False)
+        fit_targets(model, ds, tmp_path / "u", 0, cfg, progress=False)
+    with pytest.raises(DistillError, match="extra slots"):
+        fit_targets(model, ds, tmp_path / "u", 3, replace(cfg, extra_slots=1), progress=False)
 
 
 def test_training_uses_the_targets(tmp_path, monkeypatch):
@@ -72,7 +77,7 @@ def test_training_uses_the_targets(tmp_path, monkeypatch):
 
     model, _ = load_model("shipped")
     ds = SceneDataset(shipped_samples(), split="test")
-    fit_targets(model, ds, tmp_path / "t", len(ds), SearchConfig(rounds=1), ColorFitConfig(steps=2), progress=False)
+    fit_targets(model, ds, tmp_path / "t", len(ds), InferenceConfig.of(search=1, fit_color=2), progress=False)
     cfg = TrainConfig(data=str(shipped_samples()), split="test", steps=2, log_every=1, init_from="shipped",
                       model=ModelConfig(soft_mask_tau=0.05), loss=LossConfig(w_mask=0.1, mask_from_depth=True, w_distill=0.5),
                       distill=str(tmp_path / "t"))
@@ -94,7 +99,7 @@ def test_batch_rows_follow_the_indices_asked_for():
 
 
 def test_weights_digest_tells_models_apart():
-    from prismonet.model.distill import weights_digest
+    from prismonet.model.distill_fit import weights_digest
     from prismonet.model.io import load_model
 
     a, _ = load_model("shipped")

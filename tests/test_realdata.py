@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from prismonet.model.inference import InferenceConfig
 from prismonet.geometry.camera import Camera, intrinsics_matrix, project
 from realdata.color import ColorMapping, estimate_table_color, table_mapping
 from realdata.io import PhotoError, load_photo
@@ -225,12 +226,12 @@ def test_real_reconstruct_refinement_fits_the_photo_better(tmp_path):
     """Refining against the photo (image term only) raises the render's PSNR against it."""
     from realdata.reconstruct import reconstruct_photos
 
-    recs = reconstruct_photos([SAMPLES / "stuff.jpg"], tmp_path, refine_steps=10, progress=False)
+    recs = reconstruct_photos([SAMPLES / "stuff.jpg"], tmp_path, inference=InferenceConfig.of(refine=10), progress=False)
     (r,) = recs
-    assert r["finite"] and r["refine_steps"] == 10
+    assert r["finite"] and r["inference"]["refine"]["steps"] == 10
     assert r["psnr"]["refined"] > r["psnr"]["encoder"] + 0.2, r["psnr"]  # measured 17.55 -> 17.91 dB
     with pytest.raises(ValueError, match="steps must be >= 0"):
-        reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "bad", refine_steps=-1, progress=False)
+        InferenceConfig.of(refine=-1)
 
 
 def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
@@ -238,8 +239,8 @@ def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
     from realdata.reconstruct import reconstruct_photos
 
     (plain,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e0", progress=False)
-    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", extra_slots=2, progress=False)
-    assert extra["extra_slots"] == 2 and extra["finite"] and extra["objects_found"] <= 3
+    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", inference=InferenceConfig(extra_slots=2), progress=False)
+    assert extra["inference"]["extra_slots"] == 2 and extra["finite"] and extra["objects_found"] <= 3
     assert extra["psnr"]["encoder"] >= plain["psnr"]["encoder"] - 1e-6, (plain["psnr"], extra["psnr"])
     with pytest.raises(ValueError, match="non-negative"):
-        reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "bad", extra_slots=-1, progress=False)
+        InferenceConfig(extra_slots=-1)

@@ -69,7 +69,7 @@ def test_views_orbit_and_pose(exported, tmp_path):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["demo", "--scenes", "0", "--out", "{tmp}/d"], "--scenes must be positive"),
+        (["demo", "--scenes", "0", "--out", "{tmp}/d"], "--scenes: must be >= 1"),
         (["export", "--out", "{tmp}/e"], "give either --scene FILE or --data DIR"),
         (["export", "--data", "{samples}", "--index", "99", "--out", "{tmp}/e"], "--index"),
         (["export", "--scene", "{tmp}/none.json", "--out", "{tmp}/e"], "no such latent-scene file"),
@@ -77,8 +77,8 @@ def test_views_orbit_and_pose(exported, tmp_path):
         (["views", "{scene}", "--eye", "1,2", "--out", "{tmp}/v"], "--eye: expected 3 comma-separated numbers"),
         (["edit", "{scene}", "--swap-shape", "0", "--out", "{tmp}/x.json"], "--swap-shape: expected two object indices"),
         (["edit", "{scene}", "--add", "nofile", "--out", "{tmp}/x.json"], "--add: expected SCENE.json:OBJECT"),
-        (["real", "reconstruct", "x.jpg", "--box", "1,2,3", "--out", "{tmp}/r"], "--box: expected x0,y0,width,height"),
-        (["real", "reconstruct", "x.jpg", "--gain", "a,b,c", "--out", "{tmp}/r"], "--box takes four integers and --gain three numbers"),
+        (["real", "reconstruct", "x.jpg", "--box", "1,2,3", "--out", "{tmp}/r"], "--box (x0,y0,width,height): expected 4 comma-separated integers"),
+        (["real", "reconstruct", "x.jpg", "--gain", "a,b,c", "--out", "{tmp}/r"], "--gain (r,g,b): expected 3 comma-separated numbers"),
         (["data", "subset", "{samples}", "{tmp}/s", "--count", "0"], "--count: must be >= 1"),
     ],
 )

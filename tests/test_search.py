@@ -7,6 +7,7 @@ import torch
 
 from prismonet.assets import shipped_samples
 from prismonet.data.dataset import SceneDataset
+from prismonet.model.inference import InferenceConfig
 from prismonet.model.io import load_model
 from prismonet.model.refine import render_latents
 from prismonet.model.fit_score import fit_score
@@ -101,7 +102,7 @@ def test_evaluation_and_cli_with_search(tmp_path, capsys):
 
     model, _ = load_model("shipped")
     ds = SceneDataset(shipped_samples(), split="test")
-    r = evaluate_model(model, ds, batch_size=4, limit=4, progress=False, search_cfg=SearchConfig(rounds=1))
+    r = evaluate_model(model, ds, batch_size=4, limit=4, progress=False, inference=InferenceConfig.of(search=1))
     assert r["search_rounds"] == 1 and r["scenes"] == 4
     data = str(shipped_samples())
     assert main(["reconstruct", "shipped", data, "--count", "1", "--search", "1", "--out", str(tmp_path / "s")]) == 0

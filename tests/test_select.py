@@ -115,10 +115,11 @@ def test_overcomplete_decoding_of_the_shipped_model():
 
 def test_evaluation_with_an_extra_slot_reports_every_encoder_step():
     from prismonet.evaluation.evaluate import evaluate_model
+    from prismonet.model.inference import InferenceConfig
 
     model, _ = load_model("shipped")
     ds = SceneDataset(shipped_samples(), split="test")
-    r = evaluate_model(model, ds, batch_size=8, limit=8, progress=False, extra_slots=1)
+    r = evaluate_model(model, ds, batch_size=8, limit=8, progress=False, inference=InferenceConfig(extra_slots=1))
     assert r["num_slots"] == 3 and r["extra_slots"] == 1
     assert [s["step"] for s in r["per_step"]] == [1, 2, 3, 4]
     # at most three of the four steps are kept, so at most three are visible per scene
@@ -126,7 +127,7 @@ def test_evaluation_with_an_extra_slot_reports_every_encoder_step():
     plain = evaluate_model(model, ds, batch_size=8, limit=8, progress=False)
     assert [s["step"] for s in plain["per_step"]] == [1, 2, 3]
     with pytest.raises(ValueError):
-        evaluate_model(model, ds, limit=1, progress=False, extra_slots=-1)
+        InferenceConfig(extra_slots=-1)
 
 
 def test_cli_extra_slots(tmp_path, capsys):

@@ -40,14 +40,13 @@ def test_shipped_model_depth(results):
 
 
 def test_shipped_model_with_search_and_color_fit():
-    from prismonet.model.color_fit import ColorFitConfig
+    from prismonet.model.inference import InferenceConfig
     from prismonet.model.io import training_loss_config
-    from prismonet.model.search import SearchConfig
 
     model, info = load_model("shipped")
     ds = SceneDataset(shipped_samples(), split="test")
     r = evaluate_model(model, ds, batch_size=16, progress=False, loss_cfg=training_loss_config(info),
-                       search_cfg=SearchConfig(rounds=3), color_cfg=ColorFitConfig(50))
+                       inference=InferenceConfig.of(search=3, fit_color=50))
     assert r["search_rounds"] == 3 and r["color_fit_steps"] == 50
     assert r["AP0.5"] >= MEASURED_SEARCH["AP0.5"] - AP_MARGIN
     assert r["depth_RMSE"] <= MEASURED_SEARCH["depth_RMSE"] * DEPTH_MARGIN

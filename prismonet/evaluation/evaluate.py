@@ -69,20 +69,12 @@ def check_compatible(model, info: dict, ds, any_camera: bool = False) -> None:
 
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
-                   refine_cfg=None, loss_cfg=None, extra_slots: int = 0, search_cfg=None,
-                   color_cfg=None, use_depth: bool = True) -> dict:
+                   inference=None, loss_cfg=None) -> dict:
     """Run the model over a dataset split and compute the paper's measures.
 
-    ``refine_cfg``: a ``RefineConfig`` to refine the latents at test time (with ``loss_cfg``, the
-    losses to refine on; default: ``LossConfig()``). The time per scene is reported either way.
-    ``extra_slots``: decode that many more encoder steps and keep the best ``num_slots`` of them
-    (``prismonet.model.select``), before any refinement.
-    ``search_cfg``: a ``SearchConfig`` to search each slot's scale, position and yaw against the
-    RGB-D after decoding and before any refinement (``prismonet.model.search``).
-    ``color_cfg``: a ``ColorFitConfig`` to fit texture latents and background colour to the image
-    last, with geometry held (``prismonet.model.color_fit``); instance and depth measures unchanged.
-    ``use_depth``: whether the slot selection and the search may read the scene's depth (``False``:
-    colour only, the paper's test-time input; refinement keeps the training losses either way).
+    ``inference``: the test-time steps after the encoder (an ``InferenceConfig``; default: none, the
+    paper's feed-forward decoding), with ``loss_cfg`` the training losses its slot selection and
+    refinement use (default: ``LossConfig()``). The time per scene is reported either way.
     ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
     steps that were not kept count as not visible), with each step's mean position error and median
     predicted / true scale over its matched objects.
@@ -91,15 +83,10 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     from tqdm import tqdm
 
-    from prismonet.model.color_fit import fit_colors
-    from prismonet.model.losses import LossConfig
-    from prismonet.model.refine import refine
-    from prismonet.model.search import search_latents
-    from prismonet.model.select import check_extra_slots, decode_overcomplete
+    from prismonet.model.inference import InferenceConfig, infer
 
-    check_extra_slots(extra_slots)
+    cfg = inference or InferenceConfig()
     n = len(ds) if limit is None else min(limit, len(ds))
-    loss_cfg = loss_cfg or LossConfig()
     N = num_slots or model.cfg.num_slots
     step_inst, pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d = [], [], [], [], [], [], []
     pos_err, rot_err, rot_sym, pair_step, scale_ratio = [], [], [], [], []
@@ -108,13 +95,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
-        out = decode_overcomplete(model, b, N, extra_slots, w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth if use_depth else 0.0)
-        if search_cfg is not None:
-            out = search_latents(model, out, b, search_cfg, use_depth=use_depth)
-        if refine_cfg is not None and refine_cfg.steps > 0:
-            out = refine(model, out, b, loss_cfg, refine_cfg)
-        if color_cfg is not None and color_cfg.steps > 0:
-            out = fit_colors(model, out, b, color_cfg)
+        out = infer(model, b, cfg, loss_cfg, N)
         seconds += time.perf_counter() - t0
         pi = out.composite.instance.numpy()
         gi = b.instance.numpy()
@@ -137,7 +118,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
                 rot_err.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, None))
                 rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, symmetry_period(int(b.obj_shape[j, gk - 1]))))
     cat = np.concatenate
-    results = {"scenes": n, "num_slots": N, "extra_slots": extra_slots}
+    results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record()}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
     results.update(image_metrics(cat(pred_img), cat(gt_img)))
     results.update(depth_metrics(cat(pred_d), cat(gt_d)))
@@ -146,16 +127,16 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["rot_err"] = float(np.median(rot_err)) if rot_err else math.nan
     results["rot_err_sym"] = float(np.median(rot_sym)) if rot_sym else math.nan
     results["matched_objects"] = len(pos_err)
-    steps = recurrent_step_metrics(cat(step_inst), cat(gt_inst), N + extra_slots)
+    steps = recurrent_step_metrics(cat(step_inst), cat(gt_inst), N + cfg.extra_slots)
     pair_step, pos_arr, ratio_arr = np.asarray(pair_step), np.asarray(pos_err), np.asarray(scale_ratio)
     for st in steps:
         sel = pair_step == st["step"]
         st["pos_err"] = float(pos_arr[sel].mean()) if sel.any() else math.nan
         st["scale_ratio"] = float(np.median(ratio_arr[sel])) if sel.any() else math.nan
     results["per_step"] = steps
-    results["refine_steps"] = 0 if refine_cfg is None else refine_cfg.steps
-    results["search_rounds"] = 0 if search_cfg is None else search_cfg.rounds
-    results["color_fit_steps"] = 0 if color_cfg is None else color_cfg.steps
+    results["refine_steps"] = cfg.refine.steps
+    results["search_rounds"] = cfg.search.rounds
+    results["color_fit_steps"] = cfg.color_fit.steps
     results["seconds_per_scene"] = seconds / max(n, 1)
     bad = [k for k in ("AP0.5", "AR0.5", "PSNR", "depth_RMSE") if not math.isfinite(results[k])]
     if bad:

@@ -1,1 +1,3 @@
-"""Shapes: the Clevr shape set, and (later) the DeepSDF shape prior."""
+"""Shapes: the Clevr shape set (``clevr_set``, ``normalize``, ``sdf_samples``) and the frozen DeepSDF
+shape prior Φ learnt from it (``decoder``, ``pretrain``, ``prior``), with its measures
+(``metrics``, ``evaluate``) and mesh extraction (``mesh``)."""

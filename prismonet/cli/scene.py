@@ -1,21 +1,13 @@
-"""The scene commands: ``prismonet export``, ``prismonet edit`` and ``prismonet views``."""
+"""``prismonet export``, ``prismonet edit`` and ``prismonet views``: a latent scene (inferred, or saved
+by ``reconstruct``) as meshes and point clouds, edited, or rendered from new viewpoints."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from prismonet.cli.common import floats
 from prismonet.files import write_image
-
-
-def _floats(text: str, n: int, what: str) -> list[float]:
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        vals = []
-    if len(vals) != n:
-        raise ValueError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
-    return vals
 
 
 def _pair(text: str, what: str) -> tuple[int, int]:
@@ -81,13 +73,13 @@ def apply_edits(scene, ops, load_scene):
             scene = edit.remove(scene, int(text))
         elif kind == "move":
             k, v = _obj_value(text, "--move")
-            scene = edit.move(scene, k, position=_floats(v, 3, "--move"))
+            scene = edit.move(scene, k, position=floats(v, 3, "--move"))
         elif kind == "shift":
             k, v = _obj_value(text, "--shift")
-            scene = edit.move(scene, k, delta=_floats(v, 3, "--shift"))
+            scene = edit.move(scene, k, delta=floats(v, 3, "--shift"))
         elif kind == "turn":
             k, v = _obj_value(text, "--turn")
-            scene = edit.move(scene, k, yaw_deg=_floats(v, 1, "--turn")[0])
+            scene = edit.move(scene, k, yaw_deg=floats(v, 1, "--turn")[0])
         elif kind == "swap_places":
             scene = edit.swap_places(scene, *_pair(text, "--swap-places"))
         elif kind in ("swap_shape", "swap_texture"):
@@ -136,8 +128,8 @@ def cmd_views(args) -> int:
     model, _ = load_model(args.model)
     scene = LatentScene.load(args.scene)
     if args.eye is not None:
-        eye = torch.tensor(_floats(args.eye, 3, "--eye"))
-        target = torch.tensor(_floats(args.target, 3, "--target"))
+        eye = torch.tensor(floats(args.eye, 3, "--eye"))
+        target = torch.tensor(floats(args.target, 3, "--target"))
         cam = scene.camera.resized(args.size, args.size)
         cam = Camera(cam.K, look_at(eye, target), cam.height, cam.width)
         out = Path(args.out)

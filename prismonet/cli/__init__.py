@@ -1,0 +1,116 @@
+"""The ``prismonet`` command line: ``prismonet <command> [<subcommand>] ...``, one module per stage of
+the pipeline, each building its own sub-parser:
+
+========================  =====================================================================
+``cli.data``              ``data clevr | sheet | verify | to-folder | subset``
+``cli.shapes``            ``shapes pretrain | eval | mesh`` (the DeepSDF prior)
+``cli.train``             ``train``, ``distill``
+``cli.evaluate``          ``demo``, ``evaluate``, ``reconstruct``
+``cli.scene``             ``export``, ``edit``, ``views``
+``cli.calibrate``         ``calibrate intrinsics | ground``
+``cli.real``              ``real prepare | reconstruct``
+``cli.bench``             ``bench data | train | search | render``
+========================  =====================================================================
+
+Every command reports a bad input as one line, ``prismonet: error: ...``, and exit status 2: output
+paths are checked before any work (each sub-parser declares them as ``outputs``), the library's
+typed errors become that line here, and a command that fails leaves no empty output folder behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from prismonet.cli import bench, calibrate, data, evaluate, real, scene, shapes, train
+from prismonet.cli.common import Parser
+
+STAGES = (evaluate, data, shapes, train, scene, calibrate, real, bench)
+"""Sub-parser modules, in the order ``prismonet --help`` lists their commands (the demo first)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="prismonet", description="PriSMONet: objects, their 3-D shapes, poses and colours from one RGB(-D) image")
+    sub = p.add_subparsers(dest="command", required=True)
+    for stage in STAGES:
+        stage.add_parsers(sub)
+    return p
+
+
+def _one_line(e: BaseException) -> str:
+    """An error's message on one line (some library messages span several)."""
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+def _remove_empty_tree(p: Path) -> None:
+    """Remove ``p`` if it holds nothing but empty folders (never a file)."""
+    if not p.is_dir():
+        return
+    for sub in sorted(p.rglob("*"), key=lambda q: len(q.parts), reverse=True):
+        if sub.is_dir() and not any(sub.iterdir()):
+            sub.rmdir()
+    if not any(p.iterdir()):
+        p.rmdir()
+
+
+def _error(message: str) -> int:
+    print(f"prismonet: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _checked_outputs(args) -> list[Path]:
+    """Check every output path the command declared, before any work; returns the folders it will create."""
+    from prismonet.files import check_output
+
+    new_dirs = []
+    for dest, kind in getattr(args, "outputs", ()):
+        if getattr(args, dest, None) is not None:
+            p = check_output(getattr(args, dest), kind)
+            if kind in ("dir", "new_dir") and not p.exists():
+                new_dirs.append(p)
+    return new_dirs
+
+
+def _parse(argv: list[str] | None):
+    """``(args, None)``, or ``(None, exit status)`` for ``--help`` (0) and a bad argument (2, one line printed)."""
+    try:
+        return build_parser().parse_args(argv), None
+    except SystemExit as e:
+        return None, e.code if isinstance(e.code, int) else 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    from calibration.intrinsics import CalibrationError
+    from prismonet.config import ConfigError
+    from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
+    from prismonet.files import shown
+    from prismonet.model.io import CheckpointError
+    from prismonet.model.trainer import TrainingError
+    from prismonet.shapes.normalize import MeshError
+    from realdata.io import PhotoError
+
+    if hasattr(sys.stdout, "reconfigure"):  # print paths that are not valid UTF-8 escaped, as stderr does
+        sys.stdout.reconfigure(errors="backslashreplace")
+    args, status = _parse(argv)
+    if args is None:
+        return status
+    new_dirs: list[Path] = []
+    try:
+        new_dirs = _checked_outputs(args)
+        rc = args.func(args)
+        new_dirs = []
+        return rc
+    except (DatasetError, OutputDirError, PlacementError, MeshError, ConfigError, CheckpointError, TrainingError, CalibrationError, PhotoError,
+            ValueError, FileNotFoundError) as e:
+        return _error(_one_line(e))
+    except OSError as e:  # a file system refusal the checks above could not foresee (full disk, a race)
+        return _error(f"{shown(e.filename) + ': ' if e.filename else ''}{e.strerror or e}")
+    except MemoryError:
+        return _error("out of memory (a size or count too large for this machine?)")
+    except KeyboardInterrupt:
+        print("prismonet: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        for p in new_dirs:  # a command that failed leaves no empty output folders behind
+            _remove_empty_tree(p)

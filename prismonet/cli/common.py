@@ -1,0 +1,95 @@
+"""What the command modules share: the one-line-error parser, the test-time step flags (one set for
+every command that decodes scenes), and small argument parsers."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with the project's one-line errors: ``prismonet: error: ...``, exit status 2 (no usage block)."""
+
+    def error(self, message: str):
+        where = self.prog.removeprefix("prismonet").strip()
+        self.exit(2, f"prismonet: error: {where + ': ' if where else ''}{message}\n")
+
+
+def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: int = 0, depth: bool = True) -> None:
+    """The flags of ``prismonet.model.inference.InferenceConfig``, with this command's defaults.
+
+    ``depth``: whether the command's input can have depth (then ``--color-only`` is offered)."""
+    g = p.add_argument_group("test-time steps after the encoder (beyond the paper; all 0: its feed-forward decoding)")
+    g.add_argument("--extra-slots", type=int, default=0, metavar="E",
+                   help="decode E more encoder steps and keep the slots that best explain the input")
+    g.add_argument("--search", type=int, default=search, metavar="R",
+                   help=f"search each slot's scale, position and yaw for R rounds (default {search}; 3 is the measured setting)")
+    g.add_argument("--refine", type=int, default=0, metavar="K", help="refine all latents for K gradient steps against the training losses")
+    g.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default 0.01)")
+    g.add_argument("--refine-pose-lr-scale", type=float, help="positions and rotations step this many times faster (default 3)")
+    g.add_argument("--fit-color", type=int, default=fit_color, metavar="K",
+                   help=f"fit texture latents and background colour to the image for K steps last, geometry held "
+                        f"(default {fit_color}; 50 is the measured setting)")
+    if depth:
+        g.add_argument("--color-only", "--search-color-only", dest="color_only", action="store_true",
+                       help="every step reads colour alone, as if the input had no depth (the paper's test-time input)")
+
+
+def inference_config(args, has_depth: bool = True):
+    """The ``InferenceConfig`` of ``add_inference_args``'s flags (validated); depth is read only
+    when the input has it and ``--color-only`` is not given."""
+    from prismonet.model.inference import InferenceConfig
+
+    return InferenceConfig.of(args.extra_slots, args.search, args.refine, args.fit_color,
+                              use_depth=has_depth and not getattr(args, "color_only", False),
+                              refine_lr=args.refine_lr, refine_pose_lr_scale=args.refine_pose_lr_scale)
+
+
+def ints(text: str, n: int, what: str) -> tuple[int, ...]:
+    """``"a,b,c"`` -> n integers, or one line naming the flag."""
+    try:
+        vals = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != n:
+        raise ValueError(f"{what}: expected {n} comma-separated integers, got {text!r}")
+    return vals
+
+
+def floats(text: str, n: int, what: str) -> list[float]:
+    """``"a,b,c"`` -> n numbers, or one line naming the flag."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise ValueError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
+    return vals
+
+
+def int_list(text: str, what: str, low: int = 0) -> list[int]:
+    """``"1,2"`` -> ``[1, 2]``, each at least ``low``."""
+    try:
+        vals = [int(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if not vals or min(vals) < low:
+        raise ValueError(f"{what}: expected comma-separated integers >= {low}, got {text!r}")
+    return vals
+
+
+def replace_section(path: Path, name: str, body: str) -> None:
+    """Replace the text between ``<!-- name:start -->`` and ``<!-- name:end -->`` in a Markdown file."""
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    text = path.read_text()
+    if start not in text or end not in text:
+        raise ValueError(f"{path}: no {start} ... {end} section to update")
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    path.write_text(f"{head}{start}\n{body}\n{end}{tail}")
+
+
+def check_finite_positive(values, what: str, text: str) -> None:
+    if not all(math.isfinite(v) and v > 0 for v in values):
+        raise ValueError(f"{what}: expected finite positive numbers, got {text!r}")

@@ -1,0 +1,134 @@
+"""``prismonet data``: generate a Clevr-style RGB-D dataset, look at it, check it, convert it."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _split(text: str) -> tuple[int, int, int]:
+    try:
+        parts = tuple(int(p) for p in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three comma-separated counts like 9000,1000,2500, got {text!r}") from None
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected three comma-separated counts, got {text!r}")
+    return parts  # type: ignore[return-value]
+
+
+def _scene_split(args) -> tuple[int, int, int]:
+    from prismonet.data.generate import DEFAULT_SPLIT
+
+    if args.split is not None:
+        return args.split
+    if args.scenes is None:
+        return DEFAULT_SPLIT
+    if args.scenes <= 0:
+        raise ValueError(f"--scenes must be positive, got {args.scenes}")
+    n = args.scenes
+    train, val = round(n * 0.72), round(n * 0.08)
+    return (train, val, n - train - val)
+
+
+def cmd_clevr(args) -> int:
+    from prismonet.data.clevr import ClevrConfig
+    from prismonet.data.generate import generate_clevr
+
+    cfg = ClevrConfig(num_objects=args.objects, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
+                      random_height=args.random_height, full_rotation=args.full_rotation, camera_jitter=args.camera_jitter)
+    meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
+    n = sum(meta["counts"].values())
+    print(f"wrote {n} scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s ({n / meta['seconds']:.0f} scenes/s)")
+    return 0
+
+
+def cmd_sheet(args) -> int:
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.viz.contact_sheet import contact_sheet
+
+    ds = SceneDataset(args.dataset, split=args.split)
+    n = min(args.count, len(ds))
+    if n <= 0:
+        raise ValueError(f"{args.dataset}: split {args.split!r} has no scenes")
+    print(f"wrote {contact_sheet(ds.numpy(range(n)), args.out)}")
+    return 0
+
+
+def cmd_verify(args) -> int:
+    from prismonet.data import packed
+    from prismonet.data.dataset import SceneDataset
+
+    for split in packed.read_meta(Path(args.dataset))["splits"]:
+        ds = SceneDataset(args.dataset, split=split, verify=True)
+        print(f"{split}: {len(ds)} scenes ok")
+    return 0
+
+
+def cmd_to_folder(args) -> int:
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.data.folder import write_folder
+
+    ds = SceneDataset(args.dataset, split=args.split)
+    n = len(ds) if args.count is None else min(args.count, len(ds))
+    write_folder(Path(args.out), ds.numpy(range(n)))
+    print(f"wrote {n} scenes to {args.out}")
+    return 0
+
+
+def cmd_subset(args) -> int:
+    from prismonet.data.packed import write_subset
+
+    write_subset(Path(args.dataset), args.split, range(args.count), Path(args.out))
+    print(f"wrote the first {args.count} {args.split} scenes of {args.dataset} to {args.out}")
+    return 0
+
+
+def _add_clevr(dsub) -> None:
+    from prismonet.files import MAX_IMAGE_SIDE, arg_float, arg_int
+
+    p = dsub.add_parser("clevr", help="generate a CLEVR-style RGB-D dataset (packed format)")
+    p.add_argument("--objects", type=int, default=3, help="objects per scene (paper: 2..5)")
+    p.add_argument("--out", required=True, help="new or empty output folder")
+    p.add_argument("--scenes", type=int, help="total scenes, split 72/8/20 %% (default: 9000,1000,2500)")
+    p.add_argument("--split", type=_split, help="train,val,test counts, e.g. 9000,1000,2500")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", type=arg_int(8, MAX_IMAGE_SIDE), default=64, help="image side in pixels")
+    p.add_argument("--noisy-depth", action="store_true", help="depth noise sigma = 0.001 d^2")
+    p.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
+    p.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
+    p.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
+    p.add_argument("--workers", type=int, default=2, help="rendering processes")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_clevr, outputs=[("out", "new_dir")])
+
+
+def add_parsers(sub) -> None:
+    from prismonet.files import arg_int
+
+    data = sub.add_parser("data", help="datasets: generate, inspect, convert")
+    dsub = data.add_subparsers(dest="data_command", required=True)
+    _add_clevr(dsub)
+    sheet = dsub.add_parser("sheet", help="contact-sheet PNG of a dataset's first scenes")
+    sheet.add_argument("dataset")
+    sheet.add_argument("--out", required=True)
+    sheet.add_argument("--split", default="train")
+    sheet.add_argument("--count", type=arg_int(1, 1024), default=8)
+    sheet.set_defaults(func=cmd_sheet, outputs=[("out", "image")])
+
+    verify = dsub.add_parser("verify", help="check a packed dataset's files and checksums")
+    verify.add_argument("dataset")
+    verify.set_defaults(func=cmd_verify)
+
+    to_folder = dsub.add_parser("to-folder", help="convert a packed split to the interchange folder format")
+    to_folder.add_argument("dataset")
+    to_folder.add_argument("out")
+    to_folder.add_argument("--split", default="test")
+    to_folder.add_argument("--count", type=arg_int(1))
+    to_folder.set_defaults(func=cmd_to_folder, outputs=[("out", "new_dir")])
+
+    subset = dsub.add_parser("subset", help="copy some scenes of a packed split into a new packed dataset")
+    subset.add_argument("dataset")
+    subset.add_argument("out")
+    subset.add_argument("--split", default="test")
+    subset.add_argument("--count", type=arg_int(1), default=16, help="the first N scenes")
+    subset.set_defaults(func=cmd_subset, outputs=[("out", "new_dir")])

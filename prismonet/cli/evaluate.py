@@ -1,0 +1,124 @@
+"""``prismonet demo``, ``prismonet evaluate`` and ``prismonet reconstruct``: a trained model decomposes
+scenes, and the paper's measures. All three take the same test-time step flags
+(``prismonet.cli.common.add_inference_args``)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from prismonet.cli.common import add_inference_args, inference_config
+
+
+def cmd_demo(args) -> int:
+    from prismonet.demo import format_demo_table, run_demo
+
+    t0 = time.perf_counter()
+    cfg = inference_config(args)
+    result = run_demo(args.out, args.scenes, args.model, args.data, cfg, progress=not args.quiet)
+    print(format_demo_table(result))
+    out = Path(args.out)
+    print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "
+          f"in {time.perf_counter() - t0:.1f} s ({cfg.describe()})")
+    print(f"figures:       {out}/scene_*.png  (input | reconstruction | depth target | depth | instances; each object alone)")
+    print(f"latent scenes: {out}/scene_*.json  (prismonet export / edit / views take these)")
+    print(f"metrics:       {out / 'metrics.json'}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_steps, format_table
+    from prismonet.model.io import load_model, training_loss_config
+
+    cfg = inference_config(args)  # validates every step's settings before any work
+    model, info = load_model(args.checkpoint, num_slots=args.objects)
+    ds = SceneDataset(args.data, split=args.split)
+    check_compatible(model, info, ds, any_camera=args.any_camera)
+    results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
+                             inference=cfg, loss_cfg=training_loss_config(info))
+    trained = info.get("model", {}).get("num_slots", "?")
+    print(format_table([(f"{trained}/{results['num_slots']}", results)]))
+    print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
+          f"{cfg.describe()}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+    print("\nper encoder step:\n" + format_steps(results))
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_reconstruct(args) -> int:
+    import torch
+
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible
+    from prismonet.model.inference import infer
+    from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
+    from prismonet.scene import LatentScene
+    from prismonet.viz.decomposition import decomposition_figure
+
+    inference_config(args)  # validate before loading anything
+    model, info = load_model(args.checkpoint, num_slots=args.objects)
+    ds = SceneDataset(args.data, split=args.split)
+    size = model.cfg.image_size
+    if tuple(ds.arrays["rgb"].shape[1:3]) != (size, size):
+        raise ValueError(f"{args.data}: images are {ds.arrays['rgb'].shape[2]}x{ds.arrays['rgb'].shape[1]} but the model expects {size}x{size}")
+    check_compatible(model, info, ds, any_camera=args.any_camera)
+    n = len(ds) if args.count is None else min(args.count, len(ds))
+    has_depth = bool((ds.arrays["depth"][:n] > 0).any())
+    cfg, loss_cfg, fp, out_dir = inference_config(args, has_depth), training_loss_config(info), prior_fingerprint(model.prior), Path(args.out)
+    for s in range(0, n, 8):
+        b = ds.batch(list(range(s, min(s + 8, n))))
+        out = infer(model, b, cfg, loss_cfg, args.objects)
+        with torch.no_grad():
+            for j, i in enumerate(range(s, s + len(b))):
+                name = ds.names[i]
+                print(f"  {decomposition_figure(b.rgb, out, j, out_dir / f'{name}.png', b.depth if has_depth else None)}")
+                LatentScene.from_output(out, b, j, fp).save(out_dir / f"{name}.json")
+    print(f"wrote {n} figures and latent scenes to {out_dir} ({cfg.describe()})")
+    return 0
+
+
+def _add_evaluate(sub) -> None:
+    from prismonet.files import arg_int
+
+    ev = sub.add_parser("evaluate", help="the paper's measures for a trained model on a dataset split")
+    ev.add_argument("checkpoint", help="run folder, or model.safetensors / model.json")
+    ev.add_argument("data", help="packed or folder dataset")
+    ev.add_argument("--split", default="test")
+    ev.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (object-count generalisation); default: as trained")
+    ev.add_argument("--batch", type=arg_int(1, 4096), default=16)
+    ev.add_argument("--limit", type=arg_int(1), help="evaluate only the first N scenes")
+    ev.add_argument("--any-camera", action="store_true", help="evaluate scenes whose camera differs from training (measures then mean little)")
+    ev.add_argument("--json", help="also write the results here")
+    ev.add_argument("--quiet", action="store_true")
+    add_inference_args(ev)
+    ev.set_defaults(func=cmd_evaluate, outputs=[("json", "file")])
+
+
+def add_parsers(sub) -> None:
+    from prismonet.files import arg_int
+
+    demo = sub.add_parser("demo", help="the main job: the shipped model decomposes the shipped test scenes")
+    demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
+    demo.add_argument("--scenes", type=arg_int(1), default=8, help="how many of the 16 shipped scenes")
+    demo.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
+    demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes")
+    demo.add_argument("--quiet", action="store_true")
+    add_inference_args(demo, search=3, fit_color=50)
+    demo.set_defaults(func=cmd_demo, outputs=[("out", "dir")])
+
+    _add_evaluate(sub)
+
+    rc = sub.add_parser("reconstruct", help="decompose scenes (synthetic or prepared real photos): a figure and the latent scene each")
+    rc.add_argument("checkpoint", help="run folder, or model.safetensors / model.json")
+    rc.add_argument("data", help="packed or folder dataset (e.g. the output of 'real prepare')")
+    rc.add_argument("--out", required=True)
+    rc.add_argument("--split", default="test")
+    rc.add_argument("--count", type=arg_int(1), help="only the first N scenes")
+    rc.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
+    rc.add_argument("--any-camera", action="store_true", help="allow a camera that differs from training (real photos)")
+    add_inference_args(rc)
+    rc.set_defaults(func=cmd_reconstruct, outputs=[("out", "dir")])

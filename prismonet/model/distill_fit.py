@@ -1,0 +1,88 @@
+"""Making self-distillation targets: the trained model's test-time steps (``InferenceConfig``) run on
+training scenes, their fitted slots saved in chunks (the format and the loss: ``prismonet.model.distill``).
+Kept apart from the loss, which the training losses import, so that the loss never imports the
+test-time steps (which import the training losses)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from prismonet.model import distill
+from prismonet.model.distill import FIELDS, DistillError
+
+
+def weights_digest(model) -> str:
+    """SHA-256 (first 16 hex digits) of a model's weights: targets made by different weights never mix,
+    even under one name (``shipped`` changes when a new model ships)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().contiguous().cpu().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int = 16,
+                progress: bool = True, meta: dict | None = None, loss_cfg=None) -> dict:
+    """Fit targets for scenes ``0 .. count-1`` of ``ds`` into ``out_dir`` (resumable) with the
+    test-time steps of ``cfg`` (an ``InferenceConfig`` without extra slots: slot k must stay encoder
+    step k; ``loss_cfg``: the training losses any refinement uses). ``distill.CHUNK`` scenes a file.
+    Returns a summary."""
+    from tqdm import tqdm
+
+    from prismonet.checkpoint import save_checkpoint
+    from prismonet.model.fit_score import fit_score
+    from prismonet.model.inference import infer
+
+    if cfg.extra_slots:
+        raise DistillError("distillation targets keep encoder order (slot k is step k): extra slots cannot be used")
+    if not 0 < count <= len(ds):
+        raise DistillError(f"count must be in 1..{len(ds)} (the split's scenes), got {count}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    info = {"count": count, "chunk": distill.CHUNK, "num_slots": model.cfg.num_slots, "search": asdict(cfg.search),
+            "color_fit": asdict(cfg.color_fit), **(meta or {})}
+    if cfg.refine.steps:  # recorded only when used, so targets made before these settings existed still resume
+        info["refine"] = asdict(cfg.refine)
+    if not cfg.use_depth:
+        info["use_depth"] = False
+    info_path = out / "targets.json"
+    if info_path.is_file():
+        old = json.loads(info_path.read_text())
+        if {k: v for k, v in old.items() if k != "count"} != {k: v for k, v in json.loads(json.dumps(info)).items() if k != "count"}:
+            raise DistillError(f"{out}: holds targets made with other settings; use a new folder")
+    tmp = info_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(info, indent=1))
+    tmp.replace(info_path)
+    model.eval()
+    before, after = [], []
+    chunks = range(0, count, distill.CHUNK)
+    for c0 in tqdm(chunks, desc="distillation targets", unit="chunk", disable=not progress):
+        path = out / f"chunk_{c0 // distill.CHUNK:05d}.safetensors"
+        if path.is_file():
+            continue
+        rows: dict[str, list[torch.Tensor]] = {k: [] for k in FIELDS}
+        for s in range(c0, min(c0 + distill.CHUNK, count), batch_size):
+            b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count))))
+
+            def score_encoder(name, o, b=b):
+                if name == "encoder":
+                    before.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
+
+            o = infer(model, b, cfg, loss_cfg, on_step=score_encoder)
+            with torch.no_grad():
+                after.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
+            p = o.latents.params
+            for k, v in (("scale", p.scale), ("position", p.position), ("cos_sin", p.cos_sin), ("z_tex", p.z_tex),
+                         ("bg_color", o.latents.bg_color)):
+                rows[k].append(v.detach().float())
+        save_checkpoint(path, {k: torch.cat(v) for k, v in rows.items()}, {"first": c0})
+    summary = {"scenes": count, "chunks": len(chunks)}
+    if before:
+        summary.update(score_before=float(torch.cat(before).mean()), score_after=float(torch.cat(after).mean()))
+    return summary

@@ -1,0 +1,113 @@
+"""The test-time steps after the encoder, as one configuration and one function (beyond the paper,
+which decodes feed-forward).
+
+In order, each off by default:
+
+1. over-complete decoding: ``extra_slots`` more encoder steps, the best-explaining slots kept
+   (``prismonet.model.select``);
+2. pose search: each slot's scale, position and yaw, by coordinate search (``prismonet.model.search``);
+3. refinement: gradient steps on all latents against the training losses (``prismonet.model.refine``);
+4. colour fit: texture latents and background colour against the image, geometry held
+   (``prismonet.model.color_fit``).
+
+``use_depth`` says whether steps 1-3 may read the scene's depth; ``False`` is the paper's test-time
+input (colour alone) and what a photo gives. Every command that decodes scenes (``evaluate``,
+``reconstruct``, ``demo``, ``real reconstruct``, ``distill``) builds one ``InferenceConfig`` from the
+same flags and calls ``infer``, so a setting means the same thing everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from typing import Callable
+
+import torch
+
+from prismonet.model.color_fit import ColorFitConfig, fit_colors
+from prismonet.model.losses import LossConfig
+from prismonet.model.prismonet import ModelOutput
+from prismonet.model.refine import RefineConfig, refine
+from prismonet.model.search import SearchConfig, search_latents
+from prismonet.model.select import check_extra_slots, decode_overcomplete
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """What runs after the encoder at test time (every step off: the paper's feed-forward decoding)."""
+
+    extra_slots: int = 0
+    """Decode this many more encoder steps and keep the slots that best explain the input."""
+    search: SearchConfig = field(default_factory=lambda: SearchConfig(rounds=0))
+    """Pose search (``rounds`` 0: none; 3 is the measured setting)."""
+    refine: RefineConfig = field(default_factory=lambda: RefineConfig(steps=0))
+    """Gradient refinement of all latents (``steps`` 0: none)."""
+    color_fit: ColorFitConfig = field(default_factory=lambda: ColorFitConfig(steps=0))
+    """Colour fit, last (``steps`` 0: none; 50 is the measured setting)."""
+    use_depth: bool = True
+    """Whether slot selection, search and refinement may read the scene's depth."""
+
+    def __post_init__(self) -> None:
+        check_extra_slots(self.extra_slots)
+
+    @classmethod
+    def of(cls, extra_slots: int = 0, search: int = 0, refine: int = 0, fit_color: int = 0, use_depth: bool = True,
+           refine_lr: float | None = None, refine_pose_lr_scale: float | None = None) -> "InferenceConfig":
+        """From step counts, with every other setting at its measured default (validates each)."""
+        overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
+        return cls(extra_slots, SearchConfig(rounds=search),
+                   RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
+                   ColorFitConfig(fit_color), use_depth)
+
+    @property
+    def feed_forward(self) -> bool:
+        """True when nothing runs after the encoder."""
+        return not (self.extra_slots or self.search.rounds or self.refine.steps or self.color_fit.steps)
+
+    def without_depth(self) -> "InferenceConfig":
+        return replace(self, use_depth=False)
+
+    def describe(self) -> str:
+        """One line, e.g. ``encoder, then 3 pose-search rounds, 50 colour-fit steps``."""
+        steps = [f"{self.extra_slots} extra slots" if self.extra_slots else "",
+                 f"{self.search.rounds} pose-search rounds" if self.search.rounds else "",
+                 f"{self.refine.steps} refinement steps" if self.refine.steps else "",
+                 f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else ""]
+        steps = [s for s in steps if s]
+        where = "" if self.use_depth or not steps else " (colour only)"
+        return "encoder, then " + ", ".join(steps) + where if steps else "encoder only, as the paper"
+
+    def record(self) -> dict:
+        """The settings as plain JSON values."""
+        return asdict(self)
+
+
+def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: LossConfig | None = None,
+          num_slots: int | None = None, on_step: Callable[[str, ModelOutput], None] | None = None) -> ModelOutput:
+    """``model``'s decomposition of ``batch`` after the steps of ``cfg``.
+
+    Args:
+        model: a ``PriSMONet``.
+        batch: a ``Batch`` (``rgb (B, 3, H, W)``, ``depth (B, 1, H, W)``, camera, ground height).
+        cfg: the test-time steps.
+        loss_cfg: the training losses (selection weights and refinement objective; default ``LossConfig()``).
+        num_slots: slots kept (default: the model's).
+        on_step: called as ``on_step(name, output)`` after each step that ran: ``"encoder"``,
+            ``"searched"``, ``"refined"``, ``"color_fit"``.
+    """
+    loss_cfg = loss_cfg or LossConfig()
+    report = on_step or (lambda name, out: None)
+    with torch.no_grad():
+        out = decode_overcomplete(model, batch, num_slots, cfg.extra_slots, use_depth=cfg.use_depth,
+                                  w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth)
+    report("encoder", out)
+    if cfg.search.rounds > 0:
+        with torch.no_grad():
+            out = search_latents(model, out, batch, cfg.search, use_depth=cfg.use_depth)
+        report("searched", out)
+    if cfg.refine.steps > 0:
+        out = refine(model, out, batch, loss_cfg, cfg.refine, use_depth=cfg.use_depth)
+        report("refined", out)
+    if cfg.color_fit.steps > 0:
+        out = fit_colors(model, out, batch, cfg.color_fit)
+        report("color_fit", out)
+    return out
