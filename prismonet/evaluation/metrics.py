@@ -111,14 +111,19 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
 
 
 def depth_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
-    """Depth RMSE, AbsRD and SqRD (Eigen et al.) over pixels with known ground truth (> 0), per scene then averaged."""
+    """Depth RMSE, AbsRD and SqRD (Eigen et al.) over pixels with known ground truth (> 0), per scene then
+    averaged over the scenes that have any (NaN when none has: e.g. photos)."""
     rmse, absrd, sqrd = [], [], []
     for p, g in zip(np.asarray(pred, np.float64), np.asarray(gt, np.float64)):
         v = g > 0
+        if not v.any():
+            continue
         d = p[v] - g[v]
         rmse.append(math.sqrt(float(np.mean(d**2))))
         absrd.append(float(np.mean(np.abs(d) / g[v])))
         sqrd.append(float(np.mean(d**2 / g[v])))
+    if not rmse:
+        return {"depth_RMSE": math.nan, "AbsRD": math.nan, "SqRD": math.nan}
     return {"depth_RMSE": float(np.mean(rmse)), "AbsRD": float(np.mean(absrd)), "SqRD": float(np.mean(sqrd))}
 
 
