@@ -54,10 +54,11 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
         b = ds.batch([i])
         o = infer(net, b, cfg, loss_cfg)
         name = f"scene_{i:03d}"
-        fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", b.depth)
         LatentScene.from_output(o, b, 0, fp).save(out / f"{name}.json")
         m = scene_metrics(o.composite.instance[0].numpy(), b.instance[0].numpy(), o.composite.image[0].numpy(),
                           b.rgb[0].numpy(), o.composite.depth[0, 0].numpy(), b.depth[0, 0].numpy())
+        title = f"{name}: AP0.5 {m['AP0.5']:.2f}, AR0.5 {m['AR0.5']:.2f}, PSNR {m['PSNR']:.1f} dB, depth RMSE {m['depth_RMSE']:.3f} ({cfg.describe()})"
+        fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", b.depth, title=title)
         records.append({"scene": name, "figure": str(fig), "latent_scene": str(out / f"{name}.json"), **m})
     keys = [k for k in records[0] if isinstance(records[0][k], float)]
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}

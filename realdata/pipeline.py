@@ -101,12 +101,14 @@ def _cropped(p, img, cal, box, size):
         raise PhotoError(f"{p}: the crop is {img.shape[1]}x{img.shape[0]} px, smaller than the {size}x{size} model input; "
                          "use a larger photo or crop (upscaling would invent the detail the model reads)")
     img, cam = resize(img, cam, size)
-    return img, cam, {"crop_box": list(map(int, b))}
+    x0, y0, w, h = (int(v) for v in b)
+    outline = [[x0 - 0.5, y0 - 0.5], [x0 + w - 0.5, y0 - 0.5], [x0 + w - 0.5, y0 + h - 0.5], [x0 - 0.5, y0 + h - 0.5]]
+    return img, cam, {"crop_box": [x0, y0, w, h], "outline": outline}
 
 
 def _rectified(p, img, cal, T, view, size, metres_per_unit):
     """Undistort and rectify to ``view`` through the table: ``(image, camera, record fields)``."""
-    from realdata.rectify import MIN_COVERAGE, WARN_COVERAGE, rectify
+    from realdata.rectify import MIN_COVERAGE, WARN_COVERAGE, rectify, rectifying_homography
     from realdata.world import WorldMapping, camera_warnings
 
     _check_size(p, cal, img)
@@ -115,14 +117,18 @@ def _rectified(p, img, cal, T, view, size, metres_per_unit):
     K_view, T_view = cam.K.double().numpy(), cam.T_world_cam.double().numpy()
     world = WorldMapping.derive(T, T_view, ground_z, metres_per_unit)
     img = undistort(img, cal.K, cal.dist)
-    img, coverage = rectify(img, cal.K, world.camera_in_model(T), K_view, T_view, ground_z, size)
+    T_photo = world.camera_in_model(T)
+    img, coverage = rectify(img, cal.K, T_photo, K_view, T_view, ground_z, size)
+    corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [size - 0.5, size - 0.5, 1], [-0.5, size - 0.5, 1]])
+    q = corners @ np.linalg.inv(rectifying_homography(cal.K, T_photo, K_view, T_view, ground_z)).T
+    outline = (q[:, :2] / q[:, 2:]).tolist()  # the view's footprint in (undistorted) photo pixels
     if coverage < MIN_COVERAGE:
         raise PhotoError(f"{p}: the photo covers {coverage:.0%} of the model's view of the table (at least {MIN_COVERAGE:.0%} needed): "
                          "aim the camera at the objects, or state a smaller --unit")
     warnings = camera_warnings(world)
     if coverage < WARN_COVERAGE:
         warnings.append(f"the photo covers {coverage:.0%} of the model's view of the table; the rest is filled with the table colour")
-    return img, cam, {"rectified": True, "world": world.to_dict(), "coverage": coverage, "warnings": warnings}
+    return img, cam, {"rectified": True, "world": world.to_dict(), "coverage": coverage, "outline": outline, "warnings": warnings}
 
 
 def _color_mapping(img, normalize, gain, target) -> ColorMapping:

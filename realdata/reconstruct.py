@@ -73,10 +73,12 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         name = ds.names[i]
         rec = by_name[name]
         photo = load_photo(rec["photo"])
-        fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8))
+        keep = found_objects(o.composite.instance[0], o.obj_depth.shape[1], min_pixels)
+        title = f"{Path(rec['photo']).name}: {len(keep)} objects found (>= {min_pixels} px), PSNR " + " -> ".join(f"{v:.1f}" for v in psnr.values()) + " dB"
+        fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
+                                   photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
         scene = LatentScene.from_output(o, b, 0, fp)
         scene.save(out / f"{name}.json")
-        keep = found_objects(o.composite.instance[0], o.obj_depth.shape[1], min_pixels)
         mesh_path = None
         if keep:
             mesh_path = write_mesh(scene_mesh(net, scene.select(keep), resolution), out / f"{name}.{mesh_format}")
