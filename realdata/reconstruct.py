@@ -41,6 +41,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from prismonet.evaluation.metrics import image_metrics
     from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
+    from prismonet.files import write_image
     from prismonet.scene import LatentScene
     from prismonet.scene.export import scene_mesh, write_mesh
     from prismonet.viz.decomposition import decomposition_figure
@@ -79,6 +80,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                                    photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
         scene = LatentScene.from_output(o, b, 0, fp)
         scene.save(out / f"{name}.json")
+        write_image(out / f"{name}_instance.png", o.composite.instance[0].numpy().astype(np.uint8))
         mesh_path = None
         if keep:
             mesh_path = write_mesh(scene_mesh(net, scene.select(keep), resolution), out / f"{name}.{mesh_format}")
@@ -86,7 +88,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                                                                o.latents.params.position, o.latents.params.z_sh))
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
                         "objects": _objects(o, keep, rec.get("world")),
-                        "figure": str(fig), "scene": str(out / f"{name}.json"), "mesh": None if mesh_path is None else str(mesh_path),
+                        "figure": str(fig), "scene": str(out / f"{name}.json"), "instance": str(out / f"{name}_instance.png"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
                         else "model's training camera (assumed)", "warnings": rec.get("warnings", []),
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})

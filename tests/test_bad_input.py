@@ -124,6 +124,9 @@ def files(tmp_path_factory):
     K_long[0, 0] = K_long[1, 1] = 30000.0
     save_calibration(Calibration(K_long, np.zeros(5), (640, 480), 0.1), root / "ground_long.yml", T_ok)
     f.update(ground_ok=root / "ground_ok.yml", ground_below=root / "ground_below.yml", ground_long=root / "ground_long.yml")
+    (root / "labels").mkdir()
+    (root / "labels" / "gone.json").write_text(json.dumps({"photo": "gone.jpg", "objects": []}))
+    f["labels_missing_photo"] = root / "labels"
     # photos: a 1x1 one, and a good one under a file name that is not valid UTF-8
     import cv2
 
@@ -196,6 +199,8 @@ CASES = [
     ("gain without manual", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--gain", "1,1,1"], "--normalize manual"),
     ("tiny photo", ["real", "prepare", "{tiny}", "--out", "{tmp}/p"], "smaller than"),
     ("box with ground pose", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_ok}", "--box", "0,0,64,64"], "--box"),
+    ("label for a missing photo", ["real", "evaluate", "{labels_missing_photo}", "--out", "{tmp}/e"], "labels a photo that is not there"),
+    ("labels folder missing", ["real", "evaluate", "{tmp}/nolabels", "--out", "{tmp}/e"], "no such folder of photo labels"),
     ("unit zero", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--unit", "0"], "--unit"),
     ("camera below the table", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_below}"], "above the table"),
     ("view not covered", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_long}"], "of the model's view"),

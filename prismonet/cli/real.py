@@ -68,10 +68,24 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def _add_photo_args(p: argparse.ArgumentParser) -> None:
+def cmd_evaluate(args) -> int:
+    from realdata.evaluate import evaluate_photos, format_real_table
+
+    box, gain = box_and_gain(args)
+    cfg = inference_config(args, has_depth=False)
+    result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
+                             args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit)
+    print(format_real_table(result))
+    print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
+          f"figures and {args.out}/real_evaluation.json)")
+    return 0
+
+
+def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
     from prismonet.files import arg_float
 
-    p.add_argument("photos", nargs="+")
+    if photos:
+        p.add_argument("photos", nargs="+")
     p.add_argument("--out", required=True)
     p.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model); "
                    "with a ground calibration, photos are rectified to its training view")
@@ -96,10 +110,23 @@ def add_parsers(sub) -> None:
 
     rr = rsub.add_parser("reconstruct", help="prepare photos and decompose them: figure, latent scene, mesh and object count each")
     _add_photo_args(rr)
-    rr.add_argument("--camera", help="calibration YAML; with a ground pose it replaces the assumed training camera")
-    rr.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
-    rr.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
+    _add_model_args(rr)
     rr.add_argument("--format", default="ply", choices=["ply", "obj", "glb"], help="mesh format")
-    rr.add_argument("--quiet", action="store_true")
     add_inference_args(rr, depth=False)
     rr.set_defaults(func=cmd_reconstruct, outputs=[("out", "dir")])
+
+    re = rsub.add_parser("evaluate", help="reconstruct labelled photos and measure them: objects found, box AP0.5/AR0.5, foreground IoU")
+    re.add_argument("labels", help="folder of photo labels (e.g. realdata/samples/labels)")
+    _add_photo_args(re, photos=False)
+    _add_model_args(re)
+    add_inference_args(re, depth=False)
+    re.set_defaults(func=cmd_evaluate, outputs=[("out", "dir")])
+
+
+def _add_model_args(p: argparse.ArgumentParser) -> None:
+    from prismonet.files import arg_int
+
+    p.add_argument("--camera", help="calibration YAML; with a ground pose the photos are rectified to the model's view")
+    p.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
+    p.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
+    p.add_argument("--quiet", action="store_true")

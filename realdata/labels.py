@@ -1,0 +1,70 @@
+"""Labelled real photos: one JSON per photo, ``{"photo": PATH (relative to the JSON), "objects":
+[{"box": [x0, y0, x1, y1], "colour": WORD, "kind": WORD}, ...]}``, boxes in photo pixels (the
+outermost pixels' corners). ``realdata/samples/labels/`` holds the shipped photos' labels."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+class LabelError(ValueError):
+    """A label file that is missing, malformed, or names a photo that is not there (one line)."""
+
+
+@dataclass(frozen=True)
+class LabelledPhoto:
+    label_file: Path
+    photo: Path
+    boxes: tuple[tuple[float, float, float, float], ...]
+    words: tuple[tuple[str, str], ...]
+    """``(colour, kind)`` per object."""
+
+
+def _box(value, where: str) -> tuple[float, float, float, float]:
+    import math
+
+    if not (isinstance(value, list) and len(value) == 4 and all(isinstance(v, (int, float)) and math.isfinite(v) for v in value)):
+        raise LabelError(f"{where}: box must be [x0, y0, x1, y1] (four finite numbers), got {value!r}")
+    x0, y0, x1, y1 = (float(v) for v in value)
+    if x1 <= x0 or y1 <= y0:
+        raise LabelError(f"{where}: box must have x1 > x0 and y1 > y0, got {value!r}")
+    return x0, y0, x1, y1
+
+
+def load_label(path: str | Path) -> LabelledPhoto:
+    from prismonet.files import InputError, read_json
+
+    path = Path(path)
+    try:
+        d = read_json(path, dict)
+    except InputError as e:
+        raise LabelError(str(e)) from None
+    if not isinstance(d.get("photo"), str) or not isinstance(d.get("objects"), list):
+        raise LabelError(f"{path}: expected {{\"photo\": PATH, \"objects\": [...]}}")
+    photo = (path.parent / d["photo"]).resolve()
+    if not photo.is_file():
+        raise LabelError(f"{path}: labels a photo that is not there: {photo}")
+    boxes, words = [], []
+    for i, o in enumerate(d["objects"]):
+        if not isinstance(o, dict):
+            raise LabelError(f"{path}: object {i} is not a JSON object")
+        boxes.append(_box(o.get("box"), f"{path}: object {i}"))
+        words.append((str(o.get("colour", "")), str(o.get("kind", ""))))
+    return LabelledPhoto(path, photo, tuple(boxes), tuple(words))
+
+
+def load_labels(folder: str | Path) -> list[LabelledPhoto]:
+    """Every ``*.json`` label in ``folder``, sorted by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise LabelError(f"{folder}: no such folder of photo labels")
+    files = sorted(folder.glob("*.json"))
+    if not files:
+        raise LabelError(f"{folder}: holds no photo labels (*.json)")
+    labels = [load_label(f) for f in files]
+    stems = [lab.photo.stem for lab in labels]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise LabelError(f"{folder}: several labels for the photo(s) {', '.join(dup)}")
+    return labels

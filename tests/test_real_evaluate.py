@@ -1,0 +1,75 @@
+"""Labelled real photos and ``prismonet real evaluate``: hand-computed box measures, the view-to-photo
+mapping, label validation, and the command on the shipped photos."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from realdata.evaluate import box_ap_ar, box_iou, mask_box, view_to_photo
+from realdata.labels import LabelError, load_label, load_labels
+
+LABELS = Path(__file__).resolve().parents[1] / "realdata" / "samples" / "labels"
+
+
+def test_box_iou_by_hand():
+    a = np.array([[0, 0, 10, 10]])
+    b = np.array([[5, 0, 15, 10], [20, 20, 30, 30], [0, 0, 10, 10]])
+    assert np.allclose(box_iou(a, b), [[50 / 150, 0.0, 1.0]])
+
+
+def test_box_ap_ar_by_hand():
+    truth = np.array([[0, 0, 10, 10], [20, 0, 30, 10]])
+    # three predictions: the best-scored hits box 0, the second misses, the third hits box 1
+    pred = np.array([[0, 0, 10, 10], [50, 50, 60, 60], [20, 0, 30, 11]])
+    ap, ar = box_ap_ar(pred, np.array([3.0, 2.0, 1.0]), truth)
+    # precision 1, 1/2, 2/3 at recall 1/2, 1/2, 1: interpolated AP = 0.5 * 1 + 0.5 * 2/3
+    assert ap == pytest.approx(0.5 + 0.5 * 2 / 3) and ar == 1.0
+    assert box_ap_ar(pred[:0], np.zeros(0), truth) == (0.0, 0.0)
+    # one prediction on two true boxes that overlap it equally counts once
+    assert box_ap_ar(np.array([[0, 0, 10, 10]]), np.array([1.0]), np.array([[0, 0, 10, 10], [0, 0, 10, 10]]))[1] == 0.5
+
+
+def test_view_to_photo_maps_masks_to_photo_boxes():
+    # a 64-px view that is a 2x crop of the photo starting at (100, 50)
+    outline = [[99.5, 49.5], [227.5, 49.5], [227.5, 177.5], [99.5, 177.5]]
+    H = view_to_photo(outline, 64)
+    mask = np.zeros((64, 64), bool)
+    mask[10:20, 30:35] = True
+    assert np.allclose(mask_box(mask, H), (100 + 2 * 30 - 0.5, 50 + 2 * 10 - 0.5, 100 + 2 * 35 - 0.5, 50 + 2 * 20 - 0.5), atol=1e-4)
+
+
+def test_shipped_labels_load():
+    labels = load_labels(LABELS)
+    assert [lab.photo.name for lab in labels] == ["blox.jpg", "smarties.png", "stuff.jpg"]
+    assert [len(lab.boxes) for lab in labels] == [9, 14, 5]
+    assert all(w[0] and w[1] for lab in labels for w in lab.words)
+
+
+def test_bad_labels_are_refused(tmp_path):
+    f = tmp_path / "x.json"
+    f.write_text(json.dumps({"photo": "nothere.jpg", "objects": []}))
+    with pytest.raises(LabelError, match="not there"):
+        load_label(f)
+    (tmp_path / "p.jpg").write_bytes(b"")
+    for objects, words in (([{"box": [1, 2, 3]}], "four finite"), ([{"box": [5, 5, 1, 9]}], "x1 > x0"), (["a"], "not a JSON object")):
+        f.write_text(json.dumps({"photo": "p.jpg", "objects": objects}))
+        with pytest.raises(LabelError, match=words):
+            load_label(f)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(LabelError, match="no photo labels"):
+        load_labels(tmp_path / "empty")
+    with pytest.raises(LabelError, match="no such folder"):
+        load_labels(tmp_path / "missing")
+
+
+def test_real_evaluate_on_the_shipped_photos(tmp_path, capsys):
+    from prismonet.cli import main
+
+    assert main(["real", "evaluate", str(LABELS), "--out", str(tmp_path / "e"), "--quiet"]) == 0
+    table = capsys.readouterr().out
+    assert "| blox.jpg | 9 (9) |" in table and "| **all** | 28" in table
+    r = json.loads((tmp_path / "e" / "real_evaluation.json").read_text())
+    assert len(r["photos"]) == 3 and 0 <= r["overall"]["box_AP0.5"] <= 1 and 0 <= r["overall"]["foreground_IoU"] <= 1
+    assert all(Path(p["figure"]).is_file() for p in r["photos"])
