@@ -69,3 +69,24 @@ def test_bad_split_syntax_is_a_usage_error(tmp_path, capsys):
     assert main(["data", "clevr", "--out", str(tmp_path / "x"), "--split", "1,2"]) == 2
     err = capsys.readouterr().err
     assert "expected three comma-separated counts" in err and err.count("\n") == 1  # one line, no usage block
+
+
+def test_every_command_has_help(capsys):
+    """``--help`` of every command and sub-command prints and exits 0 (argparse formats each help text then)."""
+    import argparse
+
+    from prismonet.cli import build_parser
+
+    def commands(parser, prefix):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    yield from commands(sub, prefix + [name])
+                return
+        yield prefix
+
+    found = list(commands(build_parser(), []))
+    assert len(found) >= 25
+    for argv in found:
+        assert main([*argv, "--help"]) == 0, argv
+        assert "usage: prismonet" in capsys.readouterr().out
