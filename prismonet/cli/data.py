@@ -34,7 +34,7 @@ def cmd_clevr(args) -> int:
     from prismonet.data.clevr import ClevrConfig
     from prismonet.data.generate import generate_clevr
 
-    cfg = ClevrConfig(num_objects=args.objects, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
+    cfg = ClevrConfig(num_objects=args.objects, min_objects=args.min_objects, area_half=args.area, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
                       random_height=args.random_height, full_rotation=args.full_rotation, camera_jitter=args.camera_jitter)
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
@@ -84,10 +84,13 @@ def cmd_subset(args) -> int:
 
 
 def _add_clevr(dsub) -> None:
-    from prismonet.files import MAX_IMAGE_SIDE, arg_float, arg_int
+    from prismonet.files import MAX_IMAGE_SIDE, MAX_SLOTS, arg_float, arg_int
 
     p = dsub.add_parser("clevr", help="generate a CLEVR-style RGB-D dataset (packed format)")
-    p.add_argument("--objects", type=int, default=3, help="objects per scene (paper: 2..5)")
+    p.add_argument("--objects", type=arg_int(1, MAX_SLOTS), default=3, help="objects per scene (paper: 2..5); with --min-objects, the most")
+    p.add_argument("--min-objects", type=arg_int(0, MAX_SLOTS), help="each scene draws its count uniformly from MIN..--objects")
+    p.add_argument("--area", type=arg_float(0.1, 100, positive=True), default=1.5,
+                   help="object centres in [-A, A]^2 (default 1.5, the paper's; the camera's focal length fits the area)")
     p.add_argument("--out", required=True, help="new or empty output folder")
     p.add_argument("--scenes", type=int, help="total scenes, split 72/8/20 %% (default: 9000,1000,2500)")
     p.add_argument("--split", type=_split, help="train,val,test counts, e.g. 9000,1000,2500")

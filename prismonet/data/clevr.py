@@ -48,7 +48,10 @@ class ClevrConfig:
     """Settings of the CLEVR-style generator. Defaults follow the paper's modified Clevr."""
 
     num_objects: int = 3
-    """Objects per scene (the paper's datasets use 2 to 5)."""
+    """Objects per scene (the paper's datasets use 2 to 5); with ``min_objects``, the most per scene."""
+    min_objects: int | None = None
+    """Scenes with a varying count: each draws its count uniformly from ``min_objects .. num_objects``
+    (None: always ``num_objects``, and the random stream is the fixed-count generator's)."""
     image_size: int = 64
     """Square image side in pixels."""
     area_half: float = 1.5
@@ -80,6 +83,8 @@ class ClevrConfig:
     def __post_init__(self) -> None:
         if self.num_objects <= 0:
             raise ValueError(f"num_objects must be positive, got {self.num_objects}")
+        if self.min_objects is not None and not 0 <= self.min_objects <= self.num_objects:
+            raise ValueError(f"min_objects must be in 0..num_objects ({self.num_objects}), got {self.min_objects}")
         if self.image_size <= 0:
             raise ValueError(f"image_size must be positive, got {self.image_size}")
         lo, hi = self.scale_range
@@ -177,11 +182,12 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
         eye = np.asarray(cfg.camera_eye) + rng.uniform(-cfg.camera_jitter, cfg.camera_jitter, 3) * (cfg.camera_jitter > 0)
         camera = clevr_camera(cfg, tuple(eye.tolist()))
     three_d = cfg.random_height  # objects may then stack above each other: test balls, not discs
+    count = cfg.num_objects if cfg.min_objects is None else int(rng.integers(cfg.min_objects, cfg.num_objects + 1))
     for _ in range(MAX_SCENE_ATTEMPTS):
         objects: list[ObjectSpec] = []
         centres: list[np.ndarray] = []
         radii: list[float] = []
-        for _k in range(cfg.num_objects):
+        for _k in range(count):
             for _t in range(MAX_OBJECT_TRIES):
                 spec = shapes[int(rng.integers(len(shapes)))]
                 scale = float(rng.uniform(*cfg.scale_range))
@@ -210,7 +216,7 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
                     break
             else:
                 break  # this object did not fit: start the scene again
-        if len(objects) == cfg.num_objects:
+        if len(objects) == count:
             return SceneSpec(tuple(objects), camera, cfg.ground_z, cfg.ground_color)
     raise PlacementError(
         f"impossible placement: could not place {cfg.num_objects} non-intersecting objects in "
