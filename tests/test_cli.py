@@ -48,7 +48,7 @@ def test_data_commands(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["data", "clevr", "--objects", "0", "--out", "{tmp}/x"], "num_objects must be positive"),
+        (["data", "clevr", "--objects", "0", "--out", "{tmp}/x"], "--objects: must be in [1, 64]"),
         (["data", "clevr", "--objects", "40", "--out", "{tmp}/x"], "impossible placement"),
         (["data", "clevr", "--scenes", "0", "--out", "{tmp}/x"], "--scenes must be positive"),
         (["data", "clevr", "--out", "{tmp}"], "output folder is not empty"),
