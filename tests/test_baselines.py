@@ -1,0 +1,46 @@
+"""The 2-D baselines: shapes, masks that partition the image, finite losses that fall on a few scenes."""
+
+import pytest
+import torch
+
+from prismonet.assets import shipped_samples
+from prismonet.baselines.slot_attention import SlotAttention, SlotAttentionAutoEncoder, SlotAttentionConfig, position_grid
+from prismonet.data.dataset import SceneDataset
+
+
+def test_position_grid_corners():
+    g = position_grid(3, 5)
+    assert g.shape == (3, 5, 4) and torch.equal(g[0, 0], torch.tensor([0.0, 0.0, 1.0, 1.0])) and torch.equal(g[2, 4], torch.tensor([1.0, 1.0, 0.0, 0.0]))
+
+
+def test_slot_attention_shapes_and_competition():
+    cfg = SlotAttentionConfig(num_slots=5, slot_dim=16)
+    sa = SlotAttention(cfg, in_dim=8)
+    slots, attn = sa(torch.randn(2, 30, 8), torch.Generator().manual_seed(0))
+    assert slots.shape == (2, 5, 16) and attn.shape == (2, 5, 30)
+    assert torch.allclose(attn.sum(1), torch.ones(2, 30) + 5 * cfg.eps, atol=1e-5)  # softmax over slots: they compete
+
+
+def test_autoencoder_output_and_bad_config():
+    model = SlotAttentionAutoEncoder(SlotAttentionConfig(num_slots=4))
+    out = model(torch.rand(2, 3, 64, 64), torch.Generator().manual_seed(0))
+    assert out.image.shape == (2, 3, 64, 64) and out.masks.shape == (2, 4, 64, 64) and out.colors.shape == (2, 4, 3, 64, 64)
+    assert torch.allclose(out.masks.sum(1), torch.ones(2, 64, 64), atol=1e-5)
+    with pytest.raises(ValueError, match="image_size"):
+        SlotAttentionConfig(image_size=60)
+
+
+def test_loss_falls_on_a_few_scenes():
+    torch.manual_seed(0)
+    rgb = SceneDataset(shipped_samples(), "test").batch([0, 1, 2, 3]).rgb
+    model = SlotAttentionAutoEncoder(SlotAttentionConfig(num_slots=4, hidden=32, slot_dim=32))
+    opt = torch.optim.Adam(model.parameters(), lr=4e-4)
+    losses = []
+    for step in range(25):
+        loss = model.loss(rgb, torch.Generator().manual_seed(step))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    # measured 0.0901 -> 0.0847 (means of the first and last 5 steps): the grey ground is learnt first
+    assert all(torch.isfinite(torch.tensor(losses))) and sum(losses[-5:]) / 5 < 0.97 * sum(losses[:5]) / 5, losses
