@@ -44,3 +44,34 @@ def test_loss_falls_on_a_few_scenes():
         losses.append(loss.item())
     # measured 0.0901 -> 0.0847 (means of the first and last 5 steps): the grey ground is learnt first
     assert all(torch.isfinite(torch.tensor(losses))) and sum(losses[-5:]) / 5 < 0.97 * sum(losses[:5]) / 5, losses
+
+
+def test_instances_from_masks_background_is_the_ground_slot():
+    import numpy as np
+
+    from prismonet.baselines.train import instances_from_masks
+
+    masks = np.zeros((1, 3, 2, 3))
+    masks[0, 1] = 1.0  # slot 1 covers everything but two pixels
+    masks[0, 0, 0, 0] = masks[0, 2, 1, 2] = 2.0
+    gt = np.array([[[1, 0, 0], [0, 0, 2]]])
+    assert instances_from_masks(masks, gt).tolist() == [[[1, 0, 0], [0, 0, 2]]]  # slot 0 -> 1, slot 1 -> 0, slot 2 -> 2
+
+
+def test_train_resume_and_evaluate_commands(tmp_path, capsys):
+    import json
+
+    from prismonet.cli import main
+
+    samples = str(shipped_samples())
+    small = ["--set", f"data={samples}", "--set", "split=test", "--set", "batch_size=2", "--set", "log_every=1",
+             "--set", "slot_attention.hidden=16", "--set", "slot_attention.slot_dim=16", "--set", "checkpoint_every=2"]
+    run = str(tmp_path / "sa")
+    assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=2", *small, "--quiet"]) == 0
+    assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=4", *small, "--quiet"]) != 0  # another config
+    assert "another config" in capsys.readouterr().err
+    rows = [json.loads(line) for line in (tmp_path / "sa" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2]
+    assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["scenes"] == 4 and 0 <= r["AP0.5"] <= 1 and 0 <= r["img_RMSE"] <= 1

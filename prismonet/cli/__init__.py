@@ -8,7 +8,8 @@ the pipeline, each building its own sub-parser:
 ``cli.evaluate``          ``demo``, ``evaluate``, ``reconstruct``
 ``cli.scene``             ``export``, ``edit``, ``views``
 ``cli.calibrate``         ``calibrate intrinsics | ground``
-``cli.real``              ``real prepare | reconstruct``
+``cli.real``              ``real prepare | reconstruct | evaluate``
+``cli.baselines``         ``baselines train | evaluate`` (the paper's 2-D baselines)
 ``cli.bench``             ``bench data | train | search | render``
 ========================  =====================================================================
 
@@ -23,10 +24,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from prismonet.cli import bench, calibrate, data, evaluate, real, scene, shapes, train
+from prismonet.cli import baselines, bench, calibrate, data, evaluate, real, scene, shapes, train
 from prismonet.cli.common import Parser
 
-STAGES = (evaluate, data, shapes, train, scene, calibrate, real, bench)
+STAGES = (evaluate, data, shapes, train, scene, calibrate, real, baselines, bench)
 """Sub-parser modules, in the order ``prismonet --help`` lists their commands (the demo first)."""
 
 
