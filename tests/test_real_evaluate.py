@@ -42,8 +42,8 @@ def test_view_to_photo_maps_masks_to_photo_boxes():
 
 def test_shipped_labels_load():
     labels = load_labels(LABELS)
-    assert [lab.photo.name for lab in labels] == ["blox.jpg", "smarties.png", "stuff.jpg"]
-    assert [len(lab.boxes) for lab in labels] == [9, 14, 5]
+    assert [lab.photo.name for lab in labels] == ["blox.jpg", "coffee.jpg", "coins.png", "smarties.png", "stuff.jpg"]
+    assert [len(lab.boxes) for lab in labels] == [9, 3, 24, 14, 5]
     assert all(w[0] and w[1] for lab in labels for w in lab.words)
 
 
@@ -69,7 +69,7 @@ def test_real_evaluate_on_the_shipped_photos(tmp_path, capsys):
 
     assert main(["real", "evaluate", str(LABELS), "--out", str(tmp_path / "e"), "--quiet"]) == 0
     table = capsys.readouterr().out
-    assert "| blox.jpg | 9 (9) |" in table and "| **all** | 28" in table
+    assert "| blox.jpg | 9 (9) |" in table and "| **all** | 55" in table
     r = json.loads((tmp_path / "e" / "real_evaluation.json").read_text())
-    assert len(r["photos"]) == 3 and 0 <= r["overall"]["box_AP0.5"] <= 1 and 0 <= r["overall"]["foreground_IoU"] <= 1
+    assert len(r["photos"]) == 5 and 0 <= r["overall"]["box_AP0.5"] <= 1 and 0 <= r["overall"]["foreground_IoU"] <= 1
     assert all(Path(p["figure"]).is_file() for p in r["photos"])
