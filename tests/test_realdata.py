@@ -212,7 +212,7 @@ def test_real_reconstruct_runs_end_to_end_on_the_shipped_photos(tmp_path, capsys
     photos = sorted(str(p) for p in SAMPLES.iterdir() if p.suffix in (".jpg", ".png"))
     assert main(["real", "reconstruct", *photos, "--out", str(tmp_path), "--quiet"]) == 0
     summary = {Path(r["photo"]).name: r for r in json.loads((tmp_path / "summary.json").read_text())}
-    assert set(summary) == {"blox.jpg", "stuff.jpg", "smarties.png"}
+    assert set(summary) == {"blox.jpg", "coffee.jpg", "coins.png", "smarties.png", "stuff.jpg"}
     assert summary["blox.jpg"]["objects_found"] >= 1
     for r in summary.values():
         assert r["finite"]
