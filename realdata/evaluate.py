@@ -34,29 +34,40 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / (area(a)[:, None] + area(b)[None, :] - inter)
 
 
-def box_ap_ar(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold: float = IOU_THRESHOLD) -> tuple[float, float]:
-    """``(AP, AR)`` at one IoU threshold: predictions by falling score, each matched to the unmatched
-    true box it overlaps most (if at least ``threshold``); AP interpolated over all recall points."""
-    n_true = len(truth)
-    if n_true == 0:
-        return (1.0 if len(pred) == 0 else 0.0), 1.0
-    if len(pred) == 0:
-        return 0.0, 0.0
+def box_hits(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold: float = IOU_THRESHOLD) -> np.ndarray:
+    """``(P,)`` bool, in ``pred``'s order: predictions taken by falling score, each matched to the
+    unmatched true box it overlaps most, a hit if that IoU is at least ``threshold``."""
+    hits = np.zeros(len(pred), bool)
+    if len(pred) == 0 or len(truth) == 0:
+        return hits
     iou = box_iou(pred, truth)
-    used = np.zeros(n_true, bool)
-    hit = []
+    used = np.zeros(len(truth), bool)
     for i in np.argsort(-np.asarray(scores), kind="stable"):
         cand = np.where(~used, iou[i], -1.0)
         j = int(np.argmax(cand))
-        ok = cand[j] >= threshold
-        used[j] |= ok
-        hit.append(ok)
+        hits[i] = used[j] = cand[j] >= threshold
+    return hits
+
+
+def ap_ar(scores: np.ndarray, hits: np.ndarray, n_true: int) -> tuple[float, float]:
+    """``(AP, AR)`` of predictions with ``scores`` and ``hits`` against ``n_true`` true boxes (AP
+    interpolated over all recall points). Pooling photos is concatenating their scores and hits."""
+    if n_true == 0:
+        return (1.0 if len(hits) == 0 else 0.0), 1.0
+    if len(hits) == 0:
+        return 0.0, 0.0
+    hit = np.asarray(hits)[np.argsort(-np.asarray(scores), kind="stable")]
     tp = np.cumsum(hit)
     precision = tp / np.arange(1, len(hit) + 1)
     recall = tp / n_true
     envelope = np.maximum.accumulate(precision[::-1])[::-1]
     steps = np.diff(np.concatenate([[0.0], recall]))
     return float((steps * envelope).sum()), float(recall[-1])
+
+
+def box_ap_ar(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold: float = IOU_THRESHOLD) -> tuple[float, float]:
+    """``(AP, AR)`` at one IoU threshold (``box_hits``, then ``ap_ar``)."""
+    return ap_ar(scores, box_hits(pred, scores, truth, threshold), len(truth))
 
 
 def view_to_photo(outline, size: int) -> np.ndarray:
@@ -92,8 +103,10 @@ def photo_measures(label, instance: np.ndarray, outline, photo_shape: tuple[int,
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
     found = [(int(k), int(c)) for k, c in zip(ids, counts) if c >= min_pixels]
     pred = np.array([mask_box(instance == k, H) for k, _ in found]).reshape(-1, 4)
+    scores = np.array([c for _, c in found], np.float64)
     truth = np.array(label.boxes).reshape(-1, 4)
-    ap, ar = box_ap_ar(pred, np.array([c for _, c in found], np.float64), truth)
+    hits = box_hits(pred, scores, truth)
+    ap, ar = ap_ar(scores, hits, len(truth))
     view = np.zeros(photo_shape, np.uint8)
     cv2.fillConvexPoly(view, np.round(np.asarray(outline)).astype(np.int32), 1)
     view = view.astype(bool)
@@ -104,7 +117,7 @@ def photo_measures(label, instance: np.ndarray, outline, photo_shape: tuple[int,
     union = (gt_fg | pr_fg).sum()
     return {"true_objects": len(truth), "true_in_view": int(in_view), "objects_found": len(found),
             "box_AP0.5": ap, "box_AR0.5": ar, "foreground_IoU": float((gt_fg & pr_fg).sum() / union) if union else 1.0,
-            "boxes": pred.round(1).tolist()}
+            "boxes": pred.round(1).tolist(), "scores": scores.tolist(), "hits": hits.tolist()}
 
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
@@ -118,22 +131,17 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     labels = load_labels(labels_dir)
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit)
-    rows, pooled = [], {"pred": [], "scores": [], "truth": []}
-    for lab, rec in zip(labels, recs):
-        import cv2
+    import cv2
 
+    rows = []
+    for lab, rec in zip(labels, recs):
         inst = read_image(rec["instance"], cv2.IMREAD_UNCHANGED)
         shape = read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2]
         m = photo_measures(lab, inst, rec["prepare"]["outline"], shape, min_pixels)
         m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"])
         rows.append(m)
-        # pooled AP: each photo's boxes offset so that no box of one photo overlaps another's
-        off = np.array([1e5 * len(rows)] * 2 + [1e5 * len(rows)] * 2)
-        pooled["pred"] += (np.array(m["boxes"]).reshape(-1, 4) + off).tolist()
-        pooled["truth"] += (np.array(lab.boxes).reshape(-1, 4) + off).tolist()
-        ids, counts = np.unique(inst[inst > 0], return_counts=True)
-        pooled["scores"] += [float(c) for c in counts if c >= min_pixels]
-    ap, ar = box_ap_ar(np.array(pooled["pred"]).reshape(-1, 4), np.array(pooled["scores"]), np.array(pooled["truth"]).reshape(-1, 4))
+    ap, ar = ap_ar(np.concatenate([r["scores"] for r in rows]), np.concatenate([r["hits"] for r in rows]).astype(bool),
+                   sum(r["true_objects"] for r in rows))
     overall = {"photos": len(rows), "true_objects": sum(r["true_objects"] for r in rows), "true_in_view": sum(r["true_in_view"] for r in rows),
                "objects_found": sum(r["objects_found"] for r in rows), "box_AP0.5": ap, "box_AR0.5": ar,
                "foreground_IoU": float(np.mean([r["foreground_IoU"] for r in rows])),

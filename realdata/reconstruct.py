@@ -105,8 +105,9 @@ def _objects(o, keep: list[int], world: dict | None) -> list[dict]:
         pos = p.position[0, k].double().numpy()
         row = {"slot": k, "position": pos.tolist(), "scale": float(p.scale[0, k])}
         if world is not None:
-            M = np.asarray(world["matrix_model_table"])
-            row["position_table_m"] = np.linalg.solve(M, np.append(pos, 1.0))[:3].tolist()
+            from realdata.world import WorldMapping
+
+            row["position_table_m"] = WorldMapping.from_dict(world).to_table(pos[None])[0].tolist()
             row["scale_m"] = row["scale"] * world["metres_per_unit"]
         rows.append(row)
     return rows

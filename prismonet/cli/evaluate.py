@@ -59,7 +59,7 @@ def cmd_reconstruct(args) -> int:
     from prismonet.scene import LatentScene
     from prismonet.viz.decomposition import decomposition_figure
 
-    inference_config(args)  # validate before loading anything
+    cfg = inference_config(args)  # validated before loading anything
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
     size = model.cfg.image_size
@@ -68,7 +68,8 @@ def cmd_reconstruct(args) -> int:
     check_compatible(model, info, ds, any_camera=args.any_camera)
     n = len(ds) if args.count is None else min(args.count, len(ds))
     has_depth = bool((ds.arrays["depth"][:n] > 0).any())
-    cfg, loss_cfg, fp, out_dir = inference_config(args, has_depth), training_loss_config(info), prior_fingerprint(model.prior), Path(args.out)
+    cfg = cfg if has_depth else cfg.without_depth()
+    loss_cfg, fp, out_dir = training_loss_config(info), prior_fingerprint(model.prior), Path(args.out)
     for s in range(0, n, 8):
         b = ds.batch(list(range(s, min(s + 8, n))))
         out = infer(model, b, cfg, loss_cfg, args.objects)
