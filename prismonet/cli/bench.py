@@ -50,6 +50,18 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_stopping(args) -> int:
+    from prismonet.bench.stopping import bench_stopping, format_rows
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+
+    model, _ = load_model(args.model)
+    ds = SceneDataset(args.data, split=args.split)
+    rows = bench_stopping(model, ds, args.per_count, args.repeats, use_depth=not args.color_only, progress=not args.quiet)
+    print(format_rows(rows, model.cfg.num_slots))
+    return 0
+
+
 def add_parsers(sub) -> None:
     from prismonet.files import MAX_SLOTS, arg_int
 
@@ -73,6 +85,15 @@ def add_parsers(sub) -> None:
     bsearch.add_argument("--objects", **objects)
     bsearch.add_argument("--repeats", type=arg_int(1), default=12)
     bsearch.set_defaults(func=cmd_search)
+    bstop = bsub.add_parser("stopping", help="inference time per scene against its object count, with and without the stop rule")
+    bstop.add_argument("model", help="run folder or model stem")
+    bstop.add_argument("data", help="dataset with varying object counts (e.g. data clevr --min-objects 1)")
+    bstop.add_argument("--split", default="test")
+    bstop.add_argument("--per-count", type=arg_int(1), default=8, help="scenes per object count")
+    bstop.add_argument("--repeats", type=arg_int(1), default=3, help="timings per scene and way (median)")
+    bstop.add_argument("--color-only", action="store_true", help="the stop rule reads colour alone")
+    bstop.add_argument("--quiet", action="store_true")
+    bstop.set_defaults(func=cmd_stopping)
     brender = bsub.add_parser("render", help="renderer run time against depth error, fast path vs reference")
     brender.add_argument("--batch", type=arg_int(1, 4096), default=8)
     brender.add_argument("--objects", **objects)

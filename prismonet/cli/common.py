@@ -23,6 +23,8 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
     g = p.add_argument_group("test-time steps after the encoder (beyond the paper; all 0: its feed-forward decoding)")
     g.add_argument("--extra-slots", type=int, default=0, metavar="E",
                    help="decode E more encoder steps and keep the slots that best explain the input")
+    g.add_argument("--stop", action="store_true",
+                   help="stop the encoder once the slots found explain the input; the slots left cost nothing (up to --objects slots)")
     g.add_argument("--search", type=int, default=search, metavar="R",
                    help=f"search each slot's scale, position and yaw for R rounds (default {search}; 3 is the measured setting)")
     g.add_argument("--refine", type=int, default=0, metavar="K", help="refine all latents for K gradient steps against the training losses")
@@ -43,7 +45,8 @@ def inference_config(args, has_depth: bool = True):
 
     return InferenceConfig.of(args.extra_slots, args.search, args.refine, args.fit_color,
                               use_depth=has_depth and not getattr(args, "color_only", False),
-                              refine_lr=args.refine_lr, refine_pose_lr_scale=args.refine_pose_lr_scale)
+                              refine_lr=args.refine_lr, refine_pose_lr_scale=args.refine_pose_lr_scale,
+                              stop=getattr(args, "stop", False))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

@@ -10,6 +10,7 @@ import torch
 from prismonet.evaluation.metrics import (
     angle_error,
     ari_metrics,
+    count_metrics,
     depth_metrics,
     detection_metrics,
     image_metrics,
@@ -91,7 +92,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     step_inst, pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d = [], [], [], [], [], [], []
     pos_err, rot_err, rot_sym, pair_step, scale_ratio = [], [], [], [], []
     model.eval()
-    seconds = 0.0
+    seconds, decoded = 0.0, 0.0
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
@@ -108,6 +109,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         pred_d.append(out.composite.depth[:, 0].numpy())
         gt_d.append(b.depth[:, 0].numpy())
         p = out.latents.params
+        decoded += float(p.active.sum()) if p.active is not None else float(p.scale.numel())
         yaw = torch.atan2(p.cos_sin[..., 1], p.cos_sin[..., 0])
         for j in range(len(b)):
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
@@ -120,6 +122,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     cat = np.concatenate
     results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record()}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
+    results.update(count_metrics(cat(pred_inst), cat(gt_inst)))
     results.update(image_metrics(cat(pred_img), cat(gt_img)))
     results.update(depth_metrics(cat(pred_d), cat(gt_d)))
     results.update(ari_metrics(cat(pred_inst), cat(gt_inst)))
@@ -138,6 +141,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["search_rounds"] = cfg.search.rounds
     results["color_fit_steps"] = cfg.color_fit.steps
     results["seconds_per_scene"] = seconds / max(n, 1)
+    results["slots_decoded"] = decoded / max(n, 1)
     has_depth = any(bool((g > 0).any()) for g in gt_d)  # photos have none: their depth measures are NaN, and say so
     bad = [k for k in ("AP0.5", "AR0.5", "PSNR") + (("depth_RMSE",) if has_depth else ()) if not math.isfinite(results[k])]
     if bad:

@@ -94,6 +94,17 @@ def detection_metrics(pred_instances: np.ndarray, gt_instances: np.ndarray) -> d
     return out
 
 
+def count_metrics(pred_instances: np.ndarray, gt_instances: np.ndarray) -> dict:
+    """How often the number of visible predicted objects equals the number of visible objects
+    (each with at least ``MIN_VISIBLE_PIXELS`` pixels), over scenes ``(N, H, W)``: ``count_exact``
+    (fraction of scenes), ``count_abs_err`` (mean absolute difference) and ``count_bias`` (mean of
+    predicted minus true)."""
+    diff = np.asarray([len(instance_masks(p)[0]) - len(instance_masks(g)[0]) for p, g in zip(pred_instances, gt_instances)], dtype=np.float64)
+    if diff.size == 0:
+        return {"count_exact": math.nan, "count_abs_err": math.nan, "count_bias": math.nan}
+    return {"count_exact": float((diff == 0).mean()), "count_abs_err": float(np.abs(diff).mean()), "count_bias": float(diff.mean())}
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
     """RMSE, PSNR (data range 1) and SSIM (11x11 Gaussian window, sigma 1.5) of images ``(N, 3, H, W)`` in [0, 1].
 

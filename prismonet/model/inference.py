@@ -3,6 +3,7 @@ which decodes feed-forward).
 
 In order, each off by default:
 
+0. stopping: the encoder stops once the slots found explain the input (``prismonet.model.stopping``);
 1. over-complete decoding: ``extra_slots`` more encoder steps, the best-explaining slots kept
    (``prismonet.model.select``);
 2. pose search: each slot's scale, position and yaw, by coordinate search (``prismonet.model.search``);
@@ -29,6 +30,7 @@ from prismonet.model.prismonet import ModelOutput
 from prismonet.model.refine import RefineConfig, refine
 from prismonet.model.search import SearchConfig, search_latents
 from prismonet.model.select import check_extra_slots, decode_overcomplete
+from prismonet.model.stopping import StopRule
 
 
 @dataclass(frozen=True)
@@ -44,24 +46,26 @@ class InferenceConfig:
     color_fit: ColorFitConfig = field(default_factory=lambda: ColorFitConfig(steps=0))
     """Colour fit, last (``steps`` 0: none; 50 is the measured setting)."""
     use_depth: bool = True
-    """Whether slot selection, search and refinement may read the scene's depth."""
+    """Whether stopping, slot selection, search and refinement may read the scene's depth."""
+    stop: StopRule | None = None
+    """Stop the encoder when the slots so far explain the input (``None``: every slot is decoded)."""
 
     def __post_init__(self) -> None:
         check_extra_slots(self.extra_slots)
 
     @classmethod
     def of(cls, extra_slots: int = 0, search: int = 0, refine: int = 0, fit_color: int = 0, use_depth: bool = True,
-           refine_lr: float | None = None, refine_pose_lr_scale: float | None = None) -> "InferenceConfig":
+           refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each)."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         return cls(extra_slots, SearchConfig(rounds=search),
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
-                   ColorFitConfig(fit_color), use_depth)
+                   ColorFitConfig(fit_color), use_depth, StopRule() if stop else None)
 
     @property
     def feed_forward(self) -> bool:
         """True when nothing runs after the encoder."""
-        return not (self.extra_slots or self.search.rounds or self.refine.steps or self.color_fit.steps)
+        return not (self.extra_slots or self.search.rounds or self.refine.steps or self.color_fit.steps or self.stop)
 
     def without_depth(self) -> "InferenceConfig":
         return replace(self, use_depth=False)
@@ -73,8 +77,11 @@ class InferenceConfig:
                  f"{self.refine.steps} refinement steps" if self.refine.steps else "",
                  f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else ""]
         steps = [s for s in steps if s]
-        where = "" if self.use_depth or not steps else " (colour only)"
-        return "encoder, then " + ", ".join(steps) + where if steps else "encoder only, as the paper"
+        where = "" if self.use_depth or not (steps or self.stop) else " (colour only)"
+        enc = "encoder stopping when explained" if self.stop else "encoder"
+        if not steps:
+            return enc + where if self.stop else "encoder only, as the paper"
+        return f"{enc}, then " + ", ".join(steps) + where
 
     def record(self) -> dict:
         """The settings as plain JSON values."""
@@ -98,7 +105,7 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
     report = on_step or (lambda name, out: None)
     with torch.no_grad():
         out = decode_overcomplete(model, batch, num_slots, cfg.extra_slots, use_depth=cfg.use_depth,
-                                  w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth)
+                                  w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth, stop=cfg.stop)
     report("encoder", out)
     if cfg.search.rounds > 0:
         with torch.no_grad():

@@ -49,6 +49,8 @@ def load_model(path: str | Path, num_slots: int | None = None):
     p = shipped_model() if str(path) == "shipped" else Path(path)
     stem = p / "model" if p.is_dir() else (p.with_suffix("") if p.suffix in (".safetensors", ".json") else p)
     config = stem.with_suffix(".json")
+    if p.is_dir() and not config.is_file() and (p / "checkpoint.safetensors").is_file():
+        return _load_training_checkpoint(p / "checkpoint.safetensors", num_slots)
     if not config.is_file():
         raise CheckpointError(f"{config}: no such model config (expected model.json beside model.safetensors)")
     try:
@@ -68,6 +70,27 @@ def load_model(path: str | Path, num_slots: int | None = None):
     load_fitting(model, tensors, f"{stem}.safetensors")
     model.eval()
     return model, info
+
+
+def _load_training_checkpoint(path: Path, num_slots: int | None):
+    """``(model, info)`` from a run that is still training: its last resumable checkpoint, with the
+    model configuration recorded there. ``info["checkpoint_step"]`` says which step it is."""
+    from prismonet.checkpoint import load_checkpoint
+    from prismonet.config import _build
+    from prismonet.model.prismonet import PriSMONet
+
+    try:
+        tensors, meta = load_checkpoint(path)
+        train = json.loads(meta["config"]) if isinstance(meta["config"], str) else meta["config"]
+        cfg = _build(ModelConfig, train.get("model", {}), "model.")
+    except (FileNotFoundError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"{path}: not a readable training checkpoint ({e})") from None
+    if num_slots is not None:
+        cfg = ModelConfig(**{**asdict(cfg), "num_slots": num_slots})
+    model = PriSMONet(cfg)
+    load_fitting(model, {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}, str(path))
+    model.eval()
+    return model, {"train": train, "checkpoint_step": int(meta.get("step", 0))}
 
 
 def load_fitting(model, tensors: dict, where: str) -> None:

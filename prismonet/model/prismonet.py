@@ -15,6 +15,7 @@ from torch import nn
 from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
+from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
 from prismonet.render.background import plane_depth
@@ -24,7 +25,8 @@ from prismonet.shapes.prior import ShapePrior, load_prior
 
 @dataclass
 class SceneLatents:
-    """The inferred representation of B scenes with N slots (``params.active`` unused here)."""
+    """The inferred representation of B scenes with N slots (``params.active``: ``None``, or ``False``
+    for the slots a stopped encoder never decoded)."""
 
     params: SceneParams
     bg_color: torch.Tensor  # (B, 3)
@@ -116,9 +118,14 @@ class PriSMONet(nn.Module):
 
     # -- the model ----------------------------------------------------------------------
     def forward(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor,
-                num_slots: int | None = None) -> ModelOutput:
+                num_slots: int | None = None, stop: BoundStop | None = None) -> ModelOutput:
         """Decompose images ``(B, 3, H, W)`` (cameras ``K (B, 3, 3)``, ``T_world_cam (B, 4, 4)``,
-        ground heights ``(B,)``) into ``num_slots`` objects (default ``cfg.num_slots``)."""
+        ground heights ``(B,)``) into ``num_slots`` objects (default ``cfg.num_slots``).
+
+        ``stop`` (``prismonet.model.stopping``): a scene stops when the slots so far explain it, or
+        when a step's slot explains nothing more (that slot is dropped); its remaining slots are
+        inactive (``params.active``) and cast no ray, and the loop ends when every scene has
+        stopped. ``None``: all steps run."""
         B, C, H, W = image.shape
         if C != 3 or (H, W) != (self.cfg.image_size, self.cfg.image_size):
             raise ValueError(f"image: expected shape (B, 3, {self.cfg.image_size}, {self.cfg.image_size}), got {tuple(image.shape)}")
@@ -132,11 +139,27 @@ class PriSMONet(nn.Module):
         cur_mask = torch.zeros(B, 1, H, W, dtype=image.dtype)
         slots, depths, masks, colors, softs = [], [], [], [], []
         settings = self.render_settings()
+        live = before = None
+        if stop is not None:
+            live = torch.ones(B, dtype=torch.bool)
+            before = stop.count(cur_image, torch.minimum(cur_depth, bg_depth))
         for _ in range(N):
+            if live is not None:
+                live = live & ~stop.explained(before)
+                if not live.any():
+                    break
             pi, pm = (cur_image.detach(), cur_mask.detach()) if self.cfg.detach_partials else (cur_image, cur_mask)
             params = self.decode_latent(self.encoder(self.encoder_input(image, pi, pm)))
+            params.active = None if live is None else live[:, None].clone()
             obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
             d, m, c = obj.depth, obj.mask, obj.color[:, 0]  # (B, 1, H, W) x2, (B, 3, H, W)
+            if live is not None:  # drop the slot where it explains nothing more, and stop there
+                win = m & (d < cur_depth)
+                after = stop.count(torch.where(win, c, cur_image), torch.minimum(torch.where(win, d, cur_depth), bg_depth))
+                live = live & stop.gained(before, after)
+                before = torch.where(live[:, None], after, before)
+                m = m & live[:, None, None, None]
+                params.active = live[:, None].clone()
             win = m & (d < cur_depth)
             cur_image = torch.where(win, c, cur_image)
             cur_depth = torch.where(win, d, cur_depth)
@@ -146,9 +169,30 @@ class PriSMONet(nn.Module):
             masks.append(m[:, 0])
             colors.append(c)
             softs.append(obj.soft_mask)
-        cat = lambda name: None if getattr(slots[0], name) is None else torch.cat([getattr(p, name) for p in slots], 1)
-        params = SceneParams(cat("z_sh"), cat("z_tex"), cat("position"), cat("cos_sin"), cat("scale"), cat("axis"))
+        for _ in range(N - len(slots)):  # slots never decoded: inactive, empty renders
+            slots.append(self._empty_slot(image))
+            depths.append(torch.full((B, H, W), self.cfg.far_depth, dtype=image.dtype))
+            masks.append(torch.zeros(B, H, W, dtype=torch.bool))
+            colors.append(torch.zeros(B, 3, H, W, dtype=image.dtype))
+            softs.append(None if self.cfg.soft_mask_tau <= 0 else torch.zeros(B, 1, H, W, dtype=image.dtype))
+        params = _cat_slots(slots)
         obj_depth, obj_mask, obj_color = torch.stack(depths, 1), torch.stack(masks, 1), torch.stack(colors, 1)
         comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
         soft = torch.cat(softs, 1) if softs[0] is not None else None
         return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft)
+
+    def _empty_slot(self, image: torch.Tensor) -> SceneParams:
+        """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""
+        params = self.decode_latent(torch.zeros(image.shape[0], self.out_dim, dtype=image.dtype))
+        params.active = torch.zeros(image.shape[0], 1, dtype=torch.bool)
+        return params
+
+
+def _cat_slots(slots: list[SceneParams]) -> SceneParams:
+    """Concatenate one-slot ``SceneParams`` along the slot axis; ``active`` is kept when any slot
+    has it (``None`` elsewhere means active)."""
+    cat = lambda name: None if getattr(slots[0], name) is None else torch.cat([getattr(p, name) for p in slots], 1)
+    active = None
+    if any(p.active is not None for p in slots):
+        active = torch.cat([p.active if p.active is not None else torch.ones_like(p.scale, dtype=torch.bool) for p in slots], 1)
+    return SceneParams(cat("z_sh"), cat("z_tex"), cat("position"), cat("cos_sin"), cat("scale"), cat("axis"), active)

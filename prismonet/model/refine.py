@@ -65,7 +65,7 @@ def refine(model, out: ModelOutput, batch, loss_cfg: LossConfig, cfg: RefineConf
     lo, hi = model.cfg.scale_range
     with torch.enable_grad():
         for _ in range(cfg.steps):
-            params = SceneParams(z_sh, z_tex, pos, cs, scale, p0.axis)
+            params = SceneParams(z_sh, z_tex, pos, cs, scale, p0.axis, p0.active)
             o = render_latents(model, params, bg, batch.K, batch.T_world_cam, batch.ground_z, H, W)
             loss = compute_losses(model, o, batch, loss_cfg, FINAL_STEP).total
             opt.zero_grad(set_to_none=True)
@@ -76,7 +76,7 @@ def refine(model, out: ModelOutput, batch, loss_cfg: LossConfig, cfg: RefineConf
                 bg.clamp_(0.0, 1.0)
                 cs.div_(cs.norm(dim=-1, keepdim=True).clamp_min(1e-6))
     with torch.no_grad():
-        params = SceneParams(z_sh.detach(), z_tex.detach(), pos.detach(), cs.detach(), scale.detach(), p0.axis)
+        params = SceneParams(z_sh.detach(), z_tex.detach(), pos.detach(), cs.detach(), scale.detach(), p0.axis, p0.active)
         new = render_latents(model, params, bg.detach(), batch.K, batch.T_world_cam, batch.ground_z, H, W)
     new.slot_steps = out.slot_steps
     return new

@@ -95,7 +95,8 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
         """Render slot ``k`` alone with the trial latents, keep them per scene where the score falls."""
         nonlocal best
         s_try = s_try.clamp(max=model.cfg.scale_range[1])  # the encoder's own bound
-        q = SceneParams(z_try[:, None], one(p.z_tex, k), p_try[:, None], cs_try[:, None], s_try[:, None], one(p.axis, k))
+        q = SceneParams(z_try[:, None], one(p.z_tex, k), p_try[:, None], cs_try[:, None], s_try[:, None], one(p.axis, k),
+                        one(p.active, k))
         obj = render_objects(model.sdf_fn, model.color_fn, q, batch.K, batch.T_world_cam, H, W, settings)
         d_try, m_try, c_try = depth.clone(), mask.clone(), color.clone()
         d_try[:, k], m_try[:, k], c_try[:, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
@@ -114,6 +115,8 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
 
     for r in range(cfg.rounds):
         for k in range(N):
+            if p.active is not None and not p.active[:, k].any():
+                continue  # never decoded (a stopped encoder): nothing to search
             if cfg.shape_trials and r == 0:
                 for c in torch.unique(cats):
                     sel = codes[cats == c]  # (n_c, D)

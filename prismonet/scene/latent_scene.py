@@ -83,11 +83,13 @@ class LatentScene:
     # -- from the model -------------------------------------------------------------------
     @staticmethod
     def from_output(out, batch, index: int, prior_fingerprint: str = "") -> "LatentScene":
-        """Scene ``index`` of a model output ``out`` for the input ``batch`` (a ``SceneBatch``)."""
+        """Scene ``index`` of a model output ``out`` for the input ``batch`` (a ``SceneBatch``); slots
+        that a stopped encoder never decoded (``params.active`` false) are left out."""
         p, i = out.latents.params, index
         H, W = batch.rgb.shape[-2:]
         cam = Camera(batch.K[i].detach().float(), batch.T_world_cam[i].detach().float(), int(H), int(W))
-        d = lambda t: t[i].detach().float().clone()
+        keep = slice(None) if p.active is None else p.active[i]
+        d = lambda t: t[i][keep].detach().float().clone()
         return LatentScene(d(p.z_sh), d(p.z_tex), d(p.position), d(p.cos_sin), d(p.scale), d(out.latents.bg_color),
                            cam, float(batch.ground_z[i]), prior_fingerprint)
 
