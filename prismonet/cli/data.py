@@ -42,6 +42,23 @@ def cmd_clevr(args) -> int:
     return 0
 
 
+def cmd_towers(args) -> int:
+    from dataclasses import replace
+
+    from prismonet.data.clevr import BLOCK_TOWERS
+    from prismonet.data.generate import generate_clevr
+
+    if args.min_objects > args.objects:
+        raise ValueError(f"--min-objects ({args.min_objects}) must not exceed --objects ({args.objects})")
+    towers = replace(BLOCK_TOWERS.towers, max_towers=args.max_towers)
+    cfg = replace(BLOCK_TOWERS, num_objects=args.objects, min_objects=args.min_objects, image_size=args.size, towers=towers,
+                  area_half=BLOCK_TOWERS.area_half if args.max_towers == 1 else max(BLOCK_TOWERS.area_half, 0.6 * args.max_towers))
+    meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
+    n = sum(meta["counts"].values())
+    print(f"wrote {n} block-tower scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s")
+    return 0
+
+
 def cmd_sheet(args) -> int:
     from prismonet.data.dataset import SceneDataset
     from prismonet.viz.contact_sheet import contact_sheet
@@ -84,25 +101,42 @@ def cmd_subset(args) -> int:
 
 
 def _add_clevr(dsub) -> None:
-    from prismonet.files import MAX_IMAGE_SIDE, MAX_SLOTS, arg_float, arg_int
+    from prismonet.files import MAX_SLOTS, arg_float, arg_int
 
     p = dsub.add_parser("clevr", help="generate a CLEVR-style RGB-D dataset (packed format)")
     p.add_argument("--objects", type=arg_int(1, MAX_SLOTS), default=3, help="objects per scene (paper: 2..5); with --min-objects, the most")
     p.add_argument("--min-objects", type=arg_int(0, MAX_SLOTS), help="each scene draws its count uniformly from MIN..--objects")
     p.add_argument("--area", type=arg_float(0.1, 100, positive=True), default=1.5,
                    help="object centres in [-A, A]^2 (default 1.5, the paper's; the camera's focal length fits the area)")
+    _common(p)
+    p.add_argument("--noisy-depth", action="store_true", help="depth noise sigma = 0.001 d^2")
+    p.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
+    p.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
+    p.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
+    p.set_defaults(func=cmd_clevr, outputs=[("out", "new_dir")])
+
+
+def _common(p) -> None:
+    from prismonet.files import MAX_IMAGE_SIDE, arg_int
+
     p.add_argument("--out", required=True, help="new or empty output folder")
     p.add_argument("--scenes", type=int, help="total scenes, split 72/8/20 %% (default: 9000,1000,2500)")
     p.add_argument("--split", type=_split, help="train,val,test counts, e.g. 9000,1000,2500")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", type=arg_int(8, MAX_IMAGE_SIDE), default=64, help="image side in pixels")
-    p.add_argument("--noisy-depth", action="store_true", help="depth noise sigma = 0.001 d^2")
-    p.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
-    p.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
-    p.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
     p.add_argument("--workers", type=int, default=2, help="rendering processes")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_clevr, outputs=[("out", "new_dir")])
+
+
+def _add_towers(dsub) -> None:
+    from prismonet.files import arg_int
+
+    p = dsub.add_parser("towers", help="generate block-tower scenes (stacked cubes, Lerer et al.'s style; packed format)")
+    p.add_argument("--objects", type=arg_int(1, 12), default=4, help="most cubes per scene (default 4)")
+    p.add_argument("--min-objects", type=arg_int(1, 12), default=2, help="fewest cubes per scene (default 2)")
+    p.add_argument("--max-towers", type=arg_int(1, 4), default=1, help="towers per scene, uniform in 1..N (default 1)")
+    _common(p)
+    p.set_defaults(func=cmd_towers, outputs=[("out", "new_dir")])
 
 
 def add_parsers(sub) -> None:
@@ -111,6 +145,7 @@ def add_parsers(sub) -> None:
     data = sub.add_parser("data", help="datasets: generate, inspect, convert")
     dsub = data.add_subparsers(dest="data_command", required=True)
     _add_clevr(dsub)
+    _add_towers(dsub)
     sheet = dsub.add_parser("sheet", help="contact-sheet PNG of a dataset's first scenes")
     sheet.add_argument("dataset")
     sheet.add_argument("--out", required=True)

@@ -42,6 +42,9 @@ def cmd_evaluate(args) -> int:
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
           f"{cfg.describe()}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+    print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
+          f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
+          + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else ""))
     print("\nper encoder step:\n" + format_steps(results))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))

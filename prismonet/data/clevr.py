@@ -44,6 +44,37 @@ MAX_OBJECT_TRIES = 100
 
 
 @dataclass(frozen=True)
+class TowerConfig:
+    """Block towers instead of scattered objects (``prismonet.data.towers``): Lerer et al.'s style."""
+
+    max_towers: int = 1
+    """Towers per scene: uniform in ``1 .. max_towers`` (and at most the scene's cube count)."""
+    offset: float = 0.4
+    """Largest shift of a cube's centre over the one below, per axis, in the cube's half-extents."""
+    yaw_jitter_deg: float = 10.0
+    """Largest turn of a cube against the one below."""
+    margin: float = 0.1
+    """Stability margin: the centre of mass stays this many half-extents inside the contact face."""
+    colors: tuple[int, ...] = (1, 2, 3, 7)
+    """CLEVR colour ids the cubes take (default: red, blue, green, yellow: saturated, as Lerer's)."""
+    shape_id: int = 18
+    """The Clevr shape of every block (18: the cube with equal sides)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "colors", tuple(int(c) for c in self.colors))
+        if self.max_towers < 1:
+            raise ValueError(f"towers.max_towers must be >= 1, got {self.max_towers}")
+        if not (0 <= self.offset < 1 and 0 <= self.margin < 1 and self.yaw_jitter_deg >= 0):
+            raise ValueError(f"towers: offset and margin must be in [0, 1) and yaw_jitter_deg >= 0, "
+                             f"got {self.offset}, {self.margin}, {self.yaw_jitter_deg}")
+        if not self.colors or any(not 0 <= c < len(COLOR_RGB) for c in self.colors):
+            raise ValueError(f"towers.colors: expected CLEVR colour ids in 0..{len(COLOR_RGB) - 1}, got {self.colors}")
+        shapes = clevr_shapes()
+        if not 0 <= self.shape_id < len(shapes) or shapes[self.shape_id].category != "cube":
+            raise ValueError(f"towers.shape_id: expected the id of a Clevr cube, got {self.shape_id}")
+
+
+@dataclass(frozen=True)
 class ClevrConfig:
     """Settings of the CLEVR-style generator. Defaults follow the paper's modified Clevr."""
 
@@ -79,8 +110,12 @@ class ClevrConfig:
     camera_jitter: float = 0.0
     """Per-axis uniform jitter of the camera position, U(-j, j) (CLEVR uses 0.5)."""
     camera_eye: tuple[float, float, float] = CLEVR_CAMERA_EYE
+    towers: TowerConfig | None = None
+    """Block towers instead of scattered objects (``prismonet.data.towers``); see ``BLOCK_TOWERS``."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.towers, dict):  # read back from a dataset's meta
+            object.__setattr__(self, "towers", TowerConfig(**self.towers))
         if self.num_objects <= 0:
             raise ValueError(f"num_objects must be positive, got {self.num_objects}")
         if self.min_objects is not None and not 0 <= self.min_objects <= self.num_objects:
@@ -138,6 +173,11 @@ class SceneSpec:
     seed: tuple[int, ...] = field(default=())
 
 
+BLOCK_TOWERS = ClevrConfig(num_objects=4, min_objects=2, area_half=0.3, scale_range=(0.4, 0.5),
+                           camera_eye=(0.0, -10.0, 3.0), towers=TowerConfig())
+"""The block-tower setting: one tower of 2 to 4 equal cubes, seen from the front and a little above."""
+
+
 def clevr_camera(cfg: ClevrConfig, eye: tuple[float, float, float] | None = None) -> Camera:
     """CLEVR's camera pose, with the focal length that makes the placement area fill the image.
 
@@ -167,7 +207,7 @@ def check_placement_feasible(cfg: ClevrConfig) -> None:
     r = cfg.scale_range[0] * min(s.footprint_radius() for s in clevr_shapes()) + cfg.min_gap / 2
     side = 2 * cfg.area_half + 2 * r
     capacity = DISC_PACKING_DENSITY * side * side / (math.pi * r * r)
-    if cfg.num_objects > capacity and not cfg.random_height:
+    if cfg.num_objects > capacity and not cfg.random_height and cfg.towers is None:
         raise PlacementError(
             f"impossible placement: {cfg.num_objects} objects of radius >= {r:.2f} cannot fit "
             f"without intersecting in [-{cfg.area_half}, {cfg.area_half}]^2 (at most ~{int(capacity)})"

@@ -56,13 +56,16 @@ def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, 
     """Sample and render scenes ``start..stop-1`` (runs in worker processes)."""
     from prismonet.data.raycast_gt import render_scene, world_rays
 
+    from prismonet.data.towers import sample_towers, tower_camera
+
     cfg = ClevrConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg_dict.items()})
-    camera = clevr_camera(cfg)
+    camera = tower_camera(cfg) if cfg.towers is not None else clevr_camera(cfg)
+    sample = sample_towers if cfg.towers is not None else sample_scene
     out = empty_scene_arrays(stop - start, cfg.image_size, cfg.image_size, cfg.num_objects)
     rays = None
     for j, i in enumerate(range(start, stop)):
         rng = np.random.default_rng([seed, i])
-        spec = sample_scene(rng, cfg, camera)
+        spec = sample(rng, cfg, camera)
         if rays is None or cfg.camera_jitter > 0:
             rays = world_rays(spec)
         r = render_scene(spec, cfg, rng, nthreads=1, rays=rays)
@@ -161,7 +164,7 @@ def generate_clevr(
         meta = {
             "format": packed.PACKED_FORMAT,
             "version": packed.PACKED_VERSION,
-            "generator": "clevr",
+            "generator": "clevr" if cfg.towers is None else "towers",
             "generator_version": GENERATOR_VERSION,
             "config": cfg_dict,
             "seed": seed,

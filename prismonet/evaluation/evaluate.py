@@ -68,6 +68,22 @@ def check_compatible(model, info: dict, ds, any_camera: bool = False) -> None:
                              "pass --any-camera to evaluate anyway")
 
 
+RAISED_FRACTION = 0.25
+"""An object is *raised* (resting on another, or floating) when its bottom lies more than this
+fraction of its scale above the ground."""
+
+
+def _raised(b, j: int, k: int) -> bool:
+    """Whether object ``k`` of scene ``j`` of batch ``b`` is raised (a known Clevr shape only)."""
+    from prismonet.shapes.clevr_set import clevr_shapes
+
+    sid = int(b.obj_shape[j, k])
+    if not 0 <= sid < len(clevr_shapes()) or float(b.obj_axis[j, k, 2]) < 0.999:  # unknown, or tilted
+        return False
+    bottom = float(b.obj_position[j, k, 2] - b.ground_z[j]) - float(b.obj_scale[j, k]) * clevr_shapes()[sid].half_extents[2]
+    return bottom > RAISED_FRACTION * float(b.obj_scale[j, k])
+
+
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
                    inference=None, loss_cfg=None) -> dict:
@@ -90,7 +106,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     n = len(ds) if limit is None else min(limit, len(ds))
     N = num_slots or model.cfg.num_slots
     step_inst, pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d = [], [], [], [], [], [], []
-    pos_err, rot_err, rot_sym, pair_step, scale_ratio = [], [], [], [], []
+    pos_err, rot_err, rot_sym, pair_step, scale_ratio, height_err, raised = [], [], [], [], [], [], []
     model.eval()
     seconds, decoded = 0.0, 0.0
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
@@ -114,6 +130,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         for j in range(len(b)):
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
                 pos_err.append(float((p.position[j, pk - 1] - b.obj_position[j, gk - 1]).norm()))
+                height_err.append(float((p.position[j, pk - 1, 2] - b.obj_position[j, gk - 1, 2]).abs()))
+                raised.append(_raised(b, j, gk - 1))
                 pair_step.append(int(steps_1[j, pk]))
                 scale_ratio.append(float(p.scale[j, pk - 1] / b.obj_scale[j, gk - 1]))
                 gt_yaw = float(b.obj_yaw[j, gk - 1])
@@ -130,6 +148,10 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["rot_err"] = float(np.median(rot_err)) if rot_err else math.nan
     results["rot_err_sym"] = float(np.median(rot_sym)) if rot_sym else math.nan
     results["matched_objects"] = len(pos_err)
+    h, up = np.asarray(height_err), np.asarray(raised, dtype=bool)
+    results["height_err"] = float(h.mean()) if h.size else math.nan
+    results["height_err_raised"] = float(h[up].mean()) if up.any() else math.nan
+    results["matched_raised"] = int(up.sum())
     steps = recurrent_step_metrics(cat(step_inst), cat(gt_inst), N + cfg.extra_slots)
     pair_step, pos_arr, ratio_arr = np.asarray(pair_step), np.asarray(pos_err), np.asarray(scale_ratio)
     for st in steps:
