@@ -75,3 +75,55 @@ def test_train_resume_and_evaluate_commands(tmp_path, capsys):
     assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
     r = json.loads((tmp_path / "r.json").read_text())
     assert r["scenes"] == 4 and 0 <= r["AP0.5"] <= 1 and 0 <= r["img_RMSE"] <= 1
+
+
+def test_monet_masks_partition_the_image_by_stick_breaking():
+    from prismonet.baselines.monet import MONet, MONetConfig
+
+    torch.manual_seed(0)
+    model = MONet(MONetConfig(num_slots=3, blocks=3, unet_channels=8, vae_channels=(8, 8), decoder_channels=8, image_size=16))
+    rgb = torch.rand(2, 3, 16, 16)
+    log_m = model.attention_masks(rgb)
+    assert log_m.shape == (2, 3, 16, 16)
+    assert torch.allclose(torch.logsumexp(log_m, 1), torch.zeros(2, 16, 16), atol=1e-5)  # the masks sum to 1
+    # the first mask is alpha_1 itself: sigmoid of the attention net's logits on an empty (log 1 = 0) scope
+    a = model.attention(rgb, torch.zeros(2, 1, 16, 16))
+    assert torch.allclose(log_m[:, :1], torch.nn.functional.logsigmoid(a), atol=1e-6)
+    model.eval()
+    out = model(rgb)
+    assert out.image.shape == (2, 3, 16, 16) and out.colors.shape == (2, 3, 3, 16, 16) and out.latents.shape == (2, 3, 16)
+    assert torch.allclose(out.image, (out.masks[:, :, None] * out.colors).sum(1))
+    with pytest.raises(ValueError, match="divisible"):
+        MONetConfig(image_size=60)
+
+
+def test_monet_loss_falls_on_a_few_scenes():
+    from prismonet.baselines.monet import MONet, MONetConfig
+
+    torch.manual_seed(0)
+    rgb = SceneDataset(shipped_samples(), "test").batch([0, 1, 2, 3]).rgb
+    model = MONet(MONetConfig(num_slots=4, unet_channels=8, vae_channels=(16, 16, 16, 16), decoder_channels=16))
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for step in range(20):
+        loss = model.loss(rgb, torch.Generator().manual_seed(step))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert all(torch.isfinite(torch.tensor(losses))) and sum(losses[-5:]) / 5 < 0.9 * sum(losses[:5]) / 5, losses
+
+
+def test_monet_trains_and_evaluates_from_the_command_line(tmp_path):
+    import json
+
+    from prismonet.cli import main
+
+    samples = str(shipped_samples())
+    small = ["--set", f"data={samples}", "--set", "split=test", "--set", "batch_size=2", "--set", "monet.unet_channels=8",
+             "--set", "monet.vae_channels=[8,8,8,8]", "--set", "monet.decoder_channels=8", "--set", "lr=1e-4"]
+    run = str(tmp_path / "monet")
+    assert main(["baselines", "train", "monet", "--out", run, "--set", "steps=2", *small, "--quiet"]) == 0
+    assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["baseline"] == "monet" and r["scenes"] == 4 and 0 <= r["ARI"] <= 1

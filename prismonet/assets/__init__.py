@@ -1,5 +1,5 @@
-"""Files that ship with the package: the pre-trained Clevr shape prior, the trained 3-object scene
-model (with its training config and log), and a few test scenes."""
+"""Files that ship with the package: the pre-trained Clevr shape prior, the trained scene models
+(each with its training config and log), and a few test scenes."""
 
 from __future__ import annotations
 
@@ -15,6 +15,15 @@ SHIPPED_SAMPLES = "samples/clevr3"
 """16 scenes of the 3-object test split (packed, split ``test``)."""
 
 
+MODELS = {
+    "clevr3": SHIPPED_MODEL,
+    "clevr3_60k": PREVIOUS_MODEL,
+    "clevr1to8": "clevr1to8_model",
+    "blocktowers": "blocktowers_model",
+}
+"""Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
+
+
 def asset_path(name: str) -> Path:
     """The path of a shipped file or folder inside the installed package."""
     return Path(str(resources.files("prismonet.assets").joinpath(name)))
@@ -26,3 +35,14 @@ def shipped_model() -> Path:
 
 def shipped_samples() -> Path:
     return asset_path(SHIPPED_SAMPLES)
+
+
+def model_names() -> list[str]:
+    """The names of the shipped scene models whose files are installed."""
+    return [n for n, stem in MODELS.items() if asset_path(stem + ".json").is_file()]
+
+
+def named_model(name: str) -> Path | None:
+    """The stem of the shipped model called ``name`` (``"shipped"``: the default), or ``None``."""
+    stem = SHIPPED_MODEL if name == "shipped" else MODELS.get(name)
+    return asset_path(stem) if stem is not None and asset_path(stem + ".json").is_file() else None

@@ -19,6 +19,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from prismonet.baselines.output import SlotOutput
+
 
 @dataclass(frozen=True)
 class SlotAttentionConfig:
@@ -90,18 +92,6 @@ class SlotAttention(nn.Module):
         return slots, attn
 
 
-@dataclass
-class SlotAttentionOutput:
-    image: torch.Tensor
-    """``(B, 3, H, W)`` reconstruction."""
-    masks: torch.Tensor
-    """``(B, K, H, W)`` slot masks (softmax over slots; an instance map is their argmax)."""
-    colors: torch.Tensor
-    """``(B, K, 3, H, W)`` each slot's RGB."""
-    slots: torch.Tensor
-    """``(B, K, D)``."""
-
-
 class SlotAttentionAutoEncoder(nn.Module):
     def __init__(self, cfg: SlotAttentionConfig = SlotAttentionConfig()) -> None:
         super().__init__()
@@ -115,7 +105,7 @@ class SlotAttentionAutoEncoder(nn.Module):
         up = [nn.ConvTranspose2d(cfg.slot_dim if i == 0 else C, C, 5, stride=2, padding=2, output_padding=1) for i in range(3)]
         self.decoder = nn.Sequential(*[m for u in up for m in (u, nn.ReLU())], nn.Conv2d(C, C, 5, padding=2), nn.ReLU(), nn.Conv2d(C, 4, 3, padding=1))
 
-    def forward(self, rgb: torch.Tensor, generator: torch.Generator | None = None) -> SlotAttentionOutput:
+    def forward(self, rgb: torch.Tensor, generator: torch.Generator | None = None) -> SlotOutput:
         """``rgb (B, 3, H, W)`` in [0, 1] (mapped to [-1, 1] inside, as the paper)."""
         B = rgb.shape[0]
         K, G = self.cfg.num_slots, self.cfg.broadcast
@@ -127,7 +117,7 @@ class SlotAttentionAutoEncoder(nn.Module):
         colors = (out[:, :, :3] + 1) / 2  # back to [0, 1]
         masks = torch.softmax(out[:, :, 3], dim=1)
         image = (masks[:, :, None] * colors).sum(1)
-        return SlotAttentionOutput(image, masks, colors, slots)
+        return SlotOutput(image, masks, colors, slots)
 
     def loss(self, rgb: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """The paper's objective: pixel MSE of the reconstruction (images in [-1, 1], as it trains)."""

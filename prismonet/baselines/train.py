@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.baselines.monet import MONet, MONetConfig
 from prismonet.baselines.slot_attention import SlotAttentionAutoEncoder, SlotAttentionConfig
 
-BASELINES = ("slot_attention",)
+BASELINES = ("slot_attention", "monet")
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,7 @@ class BaselineTrainConfig:
     steps: int = 10000
     batch_size: int = 8
     lr: float = 4e-4
-    """Adam step (Slot Attention's paper: 4e-4)."""
+    """Adam step (Slot Attention's paper: 4e-4; MONet's paper uses RMSProp at 1e-4: set lr=1e-4)."""
     warmup: int = 1000
     """Linear warm-up steps (the paper: 10K of 500K; scaled to this budget)."""
     decay_half_life: int = 10000
@@ -41,6 +42,7 @@ class BaselineTrainConfig:
     checkpoint_every: int = 200
     log_every: int = 25
     slot_attention: SlotAttentionConfig = field(default_factory=SlotAttentionConfig)
+    monet: MONetConfig = field(default_factory=MONetConfig)
 
     def __post_init__(self) -> None:
         if self.name not in BASELINES:
@@ -50,7 +52,11 @@ class BaselineTrainConfig:
 
 
 def build(cfg: BaselineTrainConfig) -> torch.nn.Module:
-    return SlotAttentionAutoEncoder(cfg.slot_attention)
+    return {"slot_attention": lambda: SlotAttentionAutoEncoder(cfg.slot_attention), "monet": lambda: MONet(cfg.monet)}[cfg.name]()
+
+
+def image_size(cfg: BaselineTrainConfig) -> int:
+    return getattr(cfg, cfg.name).image_size
 
 
 def learning_rate(cfg: BaselineTrainConfig, step: int) -> float:
@@ -67,8 +73,8 @@ def train_baseline(cfg: BaselineTrainConfig, run_dir: str | Path, progress: bool
     from prismonet.model.trainer import TrainingError, _defer_stop_signals, _truncate_log
 
     ds = SceneDataset(cfg.data, cfg.split)
-    if ds.arrays["rgb"].shape[1] != cfg.slot_attention.image_size:
-        raise ValueError(f"{cfg.data}: images are {ds.arrays['rgb'].shape[1]} px, the baseline expects {cfg.slot_attention.image_size}")
+    if ds.arrays["rgb"].shape[1] != image_size(cfg):
+        raise ValueError(f"{cfg.data}: images are {ds.arrays['rgb'].shape[1]} px, the baseline expects {image_size(cfg)}")
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)

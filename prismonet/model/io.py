@@ -39,14 +39,18 @@ def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
 
 
 def load_model(path: str | Path, num_slots: int | None = None):
-    """Load ``(model, info)`` from a run folder, a ``.safetensors``/``.json`` path, or a stem;
-    ``"shipped"`` is the trained 3-object model that ships with the package."""
-    from prismonet.assets import shipped_model
+    """Load ``(model, info)`` from a run folder, a ``.safetensors``/``.json`` path, a stem, or the name
+    of a model that ships with the package (``prismonet.assets.MODELS``; ``"shipped"`` is the
+    3-object Clevr model). A run folder still training loads its last checkpoint."""
+    from prismonet.assets import model_names, named_model
     from prismonet.checkpoint import load_checkpoint
     from prismonet.config import _build
     from prismonet.model.prismonet import PriSMONet
 
-    p = shipped_model() if str(path) == "shipped" else Path(path)
+    p = named_model(str(path)) or Path(path)
+    if not p.exists() and not p.with_suffix(".json").exists() and "/" not in str(path) and not p.suffix:
+        raise CheckpointError(f"{path}: no such model; shipped models: {', '.join(['shipped'] + model_names())}, "
+                              "or give a run folder or model path")
     stem = p / "model" if p.is_dir() else (p.with_suffix("") if p.suffix in (".safetensors", ".json") else p)
     config = stem.with_suffix(".json")
     if p.is_dir() and not config.is_file() and (p / "checkpoint.safetensors").is_file():
