@@ -65,11 +65,31 @@ def cmd_mesh(args) -> int:
     return 0
 
 
+def cmd_import_furniture(args) -> int:
+    from prismonet.shapes.furniture import import_setting
+
+    r = import_setting(args.setting, args.out, args.source, args.max_faces, args.seed, progress=not args.quiet)
+    print(f"imported {len(r['models'])} {args.setting} models into {args.out} ({r['counts']['seen']} seen, "
+          f"{r['counts']['unseen']} unseen; models.json records each source, creator and licence)"
+          + (f"; skipped {len(r['skipped'])}: " + "; ".join(f"{s['name']} ({s['reason']})" for s in r["skipped"]) if r["skipped"] else ""))
+    return 0
+
+
 def add_parsers(sub) -> None:
     from prismonet.files import MAX_MESH_RESOLUTION, arg_int
+    from prismonet.shapes.furniture import MIN_FACES as MIN_IMPORT_FACES
 
     shapes = sub.add_parser("shapes", help="the DeepSDF shape prior: pre-train, evaluate, extract meshes")
     ssub = shapes.add_subparsers(dest="shapes_command", required=True)
+    imp = ssub.add_parser("import-furniture", help="import cars, chairs or a tabletop set from Sweet Home 3D's free furniture (opt-in)")
+    imp.add_argument("setting", choices=("cars", "chairs", "tabletop"))
+    imp.add_argument("--out", required=True, help="folder for the PLY meshes and models.json")
+    imp.add_argument("--source", help="the sweethome3d-furniture .deb (apt-get download sweethome3d-furniture), a folder of "
+                                      ".sh3f files, or default: the installed /usr/share/sweethome3d/furniture")
+    imp.add_argument("--max-faces", type=arg_int(MIN_IMPORT_FACES), default=5000, help="decimate each mesh towards this many faces")
+    imp.add_argument("--seed", type=int, default=0, help="seed of the seen / unseen split")
+    imp.add_argument("--quiet", action="store_true")
+    imp.set_defaults(func=cmd_import_furniture, outputs=[("out", "dir")])
     pre = ssub.add_parser("pretrain", help="pre-train the auto-decoder on the Clevr shape set (resumable)")
     pre.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
     pre.add_argument("--config", help="JSON file with PretrainConfig fields")

@@ -1,0 +1,130 @@
+"""Importing furniture meshes for the ShapeNet-style settings, on a small library built here in Sweet
+Home 3D's format (the real package is an opt-in download)."""
+
+import io
+import json
+import tarfile
+import zipfile
+
+import numpy as np
+import pytest
+
+from prismonet.shapes.furniture import (
+    FurnitureError,
+    assign_splits,
+    catalog,
+    import_setting,
+    open_libraries,
+    parse_catalog,
+    select,
+)
+
+TEX_RGB = (64, 128, 192)
+
+
+def _box(x0, x1, y0, y1, z0, z1, first: int) -> tuple[list[str], list[str]]:
+    """OBJ lines of a box (vertices and 12 triangles, 1-based from ``first``), with texture coordinates."""
+    vs = [f"v {x} {y} {z}" for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)]
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    fs = []
+    for a, b, c, d in quads:
+        for tri in ((a, b, c), (a, c, d)):
+            fs.append("f " + " ".join(f"{first + i}/{1 + (i % 4)}" for i in tri))
+    return vs, fs
+
+
+def _library() -> bytes:
+    """A ``.sh3f`` zip: one two-part model (a red box and a textured box; y up, 4 x 2 x 1 overall),
+    listed three times: as a toy car, as an armchair turned by a ``modelRotation``, and as a carpet."""
+    from PIL import Image
+
+    v1, f1 = _box(-2.0, 0.0, 0.0, 2.0, -0.5, 0.5, 1)
+    v2, f2 = _box(0.5, 2.0, 0.0, 2.0, -0.5, 0.5, 9)
+    vt = [f"vt {u} {w}" for u, w in ((0, 0), (1, 0), (1, 1), (0, 1))]
+    obj = "\n".join(["mtllib m.mtl", *v1, *v2, *vt, "usemtl red", *f1, "usemtl tex", *f2]) + "\n"
+    mtl = "newmtl red\nKd 1 0 0\nnewmtl tex\nKd 1 1 1\nmap_Kd t.png\n"
+    png = io.BytesIO()
+    Image.new("RGB", (4, 4), TEX_RGB).save(png, format="PNG")
+    props = "\n".join([
+        "id#1=Test#toy", "name#1=Toy car", "category#1=Bedroom", "model#1=/lib/toy/toy.obj", "creator#1=Someone \\u00e9",
+        "id#2=Test#arm", "name#2=Armchair", "category#2=Living room", "model#2=/lib/toy/toy.obj",
+        "modelRotation#2=0 0 1 0 1 0 -1 0 0",  # 90 degrees about the up axis (y)
+        "id#3=Test#carpet", "name#3=Carpet", "category#3=Living room", "model#3=/lib/toy/toy.obj",
+    ]) + "\n"
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("PluginFurnitureCatalog.properties", props)
+        z.writestr("lib/toy/toy.obj", obj)
+        z.writestr("lib/toy/m.mtl", mtl)
+        z.writestr("lib/toy/t.png", png.getvalue())
+    return buf.getvalue()
+
+
+@pytest.fixture()
+def source(tmp_path):
+    d = tmp_path / "furniture"
+    d.mkdir()
+    (d / "BlendSwap-CC-BY.sh3f").write_bytes(_library())
+    return d
+
+
+def test_catalog_parsing_and_selection(source):
+    entries = catalog(open_libraries(source))
+    assert [e.name for e in entries] == ["Toy car", "Armchair", "Carpet"]
+    assert entries[0].creator == "Someone \u00e9" and entries[0].model == "lib/toy/toy.obj" and entries[0].rotation is None
+    assert entries[1].rotation == (0.0, 0.0, 1.0, 0.0, 1.0, 0.0, -1.0, 0.0, 0.0)
+    assert [e.name for e in select(entries, "cars")] == ["Toy car"]  # not the carpet
+    assert [e.name for e in select(entries, "chairs")] == ["Armchair"]
+    assert select(entries, "tabletop") == []
+    with pytest.raises(FurnitureError, match="unknown setting"):
+        select(entries, "boats")
+    assert parse_catalog("name#4=No model\n", "x") == []
+
+
+def test_import_normalises_orients_colours_and_records_the_licence(source, tmp_path):
+    import trimesh
+
+    r = import_setting("cars", tmp_path / "cars", source, progress=False)
+    (m,) = r["models"]
+    assert m["licence"] == "CC-BY-3.0" and m["source"]["library"] == "BlendSwap-CC-BY" and m["source"]["id"] == "Test#toy"
+    mesh = trimesh.load(tmp_path / "cars" / m["file"], process=False)
+    v = np.asarray(mesh.vertices)
+    # y-up 4 x 2 x 1 -> z-up: x stays, depth goes to y, height to z; centred, largest half-extent 1
+    assert np.allclose(v.min(0), [-1.0, -0.25, -0.5], atol=1e-6) and np.allclose(v.max(0), [1.0, 0.25, 0.5], atol=1e-6)
+    assert m["half_extents"] == pytest.approx([1.0, 0.25, 0.5], abs=1e-6)
+    colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    red = v[:, 0] < 0.1  # the red box spans x in [-1, 0] after scaling, the textured one [0.25, 1]
+    assert (colors[red] == [255, 0, 0]).all()
+    assert np.abs(colors[~red].astype(int) - np.array(TEX_RGB)).max() <= 1  # the texture's mean colour
+    saved = json.loads((tmp_path / "cars" / "models.json").read_text())
+    assert saved["counts"] == {"seen": 1, "unseen": 0} and saved["models"][0]["name"] == m["name"]
+    # the armchair's modelRotation turns it by 90 degrees about the up axis before the frame change
+    r = import_setting("chairs", tmp_path / "chairs", source, progress=False)
+    assert r["models"][0]["half_extents"] == pytest.approx([0.25, 1.0, 0.5], abs=1e-6)
+
+
+def test_import_reads_the_debian_package(source, tmp_path):
+    tar_buf = io.BytesIO()
+    with tarfile.open(fileobj=tar_buf, mode="w:gz") as tar:
+        data = (source / "BlendSwap-CC-BY.sh3f").read_bytes()
+        info = tarfile.TarInfo("./usr/share/sweethome3d/furniture/BlendSwap-CC-BY.sh3f")
+        info.size = len(data)
+        tar.addfile(info, io.BytesIO(data))
+    members = [(b"debian-binary", b"2.0\n"), (b"data.tar.gz", tar_buf.getvalue())]
+    deb = b"!<arch>\n" + b"".join(n.ljust(16) + b"0".ljust(12) + b"0".ljust(6) + b"0".ljust(6) + b"100644".ljust(8)
+                                  + str(len(d)).encode().ljust(10) + b"`\n" + d + (b"\n" if len(d) % 2 else b"") for n, d in members)
+    (tmp_path / "f.deb").write_bytes(deb)
+    assert [e.name for e in catalog(open_libraries(tmp_path / "f.deb"))] == ["Toy car", "Armchair", "Carpet"]
+    (tmp_path / "bad.deb").write_bytes(b"not an archive")
+    with pytest.raises(FurnitureError, match="not a Debian package"):
+        open_libraries(tmp_path / "bad.deb")
+    with pytest.raises(FurnitureError, match="no furniture source"):
+        open_libraries(tmp_path / "missing")
+
+
+def test_splits_hold_a_third_unseen_and_depend_only_on_the_seed():
+    names = [f"m{i}" for i in range(13)]
+    a = assign_splits(names, seed=0)
+    assert sum(s == "unseen" for s in a.values()) == 5  # ceil(13 / 3)
+    assert a == assign_splits(list(reversed(names)), seed=0)
+    assert a != assign_splits(names, seed=1)
