@@ -18,10 +18,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.baselines.genesis import Genesis, GenesisConfig
 from prismonet.baselines.monet import MONet, MONetConfig
 from prismonet.baselines.slot_attention import SlotAttentionAutoEncoder, SlotAttentionConfig
 
-BASELINES = ("slot_attention", "monet")
+BASELINES = ("slot_attention", "monet", "genesis")
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,7 @@ class BaselineTrainConfig:
     steps: int = 10000
     batch_size: int = 8
     lr: float = 4e-4
-    """Adam step (Slot Attention's paper: 4e-4; MONet's paper uses RMSProp at 1e-4: set lr=1e-4)."""
+    """Adam step (Slot Attention's paper: 4e-4; MONet's uses RMSProp at 1e-4 and GENESIS's Adam at 1e-4: set lr=1e-4)."""
     warmup: int = 1000
     """Linear warm-up steps (the paper: 10K of 500K; scaled to this budget)."""
     decay_half_life: int = 10000
@@ -43,6 +44,7 @@ class BaselineTrainConfig:
     log_every: int = 25
     slot_attention: SlotAttentionConfig = field(default_factory=SlotAttentionConfig)
     monet: MONetConfig = field(default_factory=MONetConfig)
+    genesis: GenesisConfig = field(default_factory=GenesisConfig)
 
     def __post_init__(self) -> None:
         if self.name not in BASELINES:
@@ -52,7 +54,8 @@ class BaselineTrainConfig:
 
 
 def build(cfg: BaselineTrainConfig) -> torch.nn.Module:
-    return {"slot_attention": lambda: SlotAttentionAutoEncoder(cfg.slot_attention), "monet": lambda: MONet(cfg.monet)}[cfg.name]()
+    return {"slot_attention": lambda: SlotAttentionAutoEncoder(cfg.slot_attention), "monet": lambda: MONet(cfg.monet),
+            "genesis": lambda: Genesis(cfg.genesis)}[cfg.name]()
 
 
 def image_size(cfg: BaselineTrainConfig) -> int:

@@ -35,7 +35,7 @@ def add_parsers(sub) -> None:
     from prismonet.baselines.train import BASELINES
     from prismonet.files import arg_int
 
-    bl = sub.add_parser("baselines", help="the paper's 2-D baselines (Slot Attention and MONet so far): train, evaluate")
+    bl = sub.add_parser("baselines", help="the paper's 2-D baselines (Slot Attention, MONet, GENESIS): train, evaluate")
     bsub = bl.add_subparsers(dest="baselines_command", required=True)
     tr = bsub.add_parser("train", help="train a baseline on a dataset's training split (resumable)")
     tr.add_argument("name", choices=BASELINES)
