@@ -195,3 +195,19 @@ def test_genesis_trains_and_evaluates_from_the_command_line(tmp_path):
     assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
     r = json.loads((tmp_path / "r.json").read_text())
     assert r["baseline"] == "genesis" and r["scenes"] == 4
+
+
+def test_mask_figure_has_a_labelled_column_per_model(tmp_path):
+    import cv2
+
+    from prismonet.cli import main
+
+    samples = str(shipped_samples())
+    small = ["--set", f"data={samples}", "--set", "split=test", "--set", "batch_size=2",
+             "--set", "slot_attention.hidden=16", "--set", "slot_attention.slot_dim=16"]
+    run = str(tmp_path / "sa")
+    assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=1", *small, "--quiet"]) == 0
+    assert main(["baselines", "figure", run, run, "--data", samples, "--scenes", "3", "--out", str(tmp_path / "f.png")]) == 0
+    img = cv2.imread(str(tmp_path / "f.png"))
+    # 3 rows of (18-px label + 128-px panel), 4-px gaps; input, truth, PriSMONet and two baselines
+    assert img.shape[:2] == (3 * 146 + 2 * 4, 5 * 128 + 4 * 4)

@@ -31,6 +31,13 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_figure(args) -> int:
+    from prismonet.baselines.compare import compare_masks
+
+    print(f"wrote {compare_masks(args.runs, args.data, args.out, args.split, args.scenes, args.model)}")
+    return 0
+
+
 def add_parsers(sub) -> None:
     from prismonet.baselines.train import BASELINES
     from prismonet.files import arg_int
@@ -51,3 +58,11 @@ def add_parsers(sub) -> None:
     ev.add_argument("--limit", type=arg_int(1), help="only the first N scenes")
     ev.add_argument("--json", help="also write the results here")
     ev.set_defaults(func=cmd_evaluate, outputs=[("json", "file")])
+    fig = bsub.add_parser("figure", help="each baseline's slot masks beside PriSMONet's instances on the same scenes")
+    fig.add_argument("runs", nargs="+", help="baseline run folders")
+    fig.add_argument("--data", required=True, help="packed or folder dataset")
+    fig.add_argument("--split", default="test")
+    fig.add_argument("--scenes", type=arg_int(1, 64), default=6)
+    fig.add_argument("--model", default="shipped", help="PriSMONet model: a name, run folder or stem (default: the shipped one)")
+    fig.add_argument("--out", required=True, help="PNG to write")
+    fig.set_defaults(func=cmd_figure, outputs=[("out", "image")])

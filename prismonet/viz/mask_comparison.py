@@ -1,0 +1,34 @@
+"""One image comparing instance masks of several models on the same scenes: a row per scene, a labelled
+column per model (the input and the ground truth first)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from prismonet.files import write_image
+from prismonet.viz.contact_sheet import colorize_instances
+from prismonet.viz.decomposition import _panel
+
+PANEL = (128, 128)
+
+
+def mask_comparison_figure(rgb: np.ndarray, gt_instance: np.ndarray, columns: list[tuple[str, np.ndarray]],
+                           path: str | Path) -> Path:
+    """``rgb (n, 3, H, W)`` in [0, 1], ``gt_instance (n, H, W)`` and ``columns``: ``(name, instances (n, H, W))``
+    per model (0 = background). Each mask panel's label carries the model's name and the number of its
+    instances in that scene."""
+    rows = []
+    for i in range(len(rgb)):
+        image = (np.clip(rgb[i].transpose(1, 2, 0), 0, 1) * 255).round().astype(np.uint8)
+        n_gt = len(np.unique(gt_instance[i])) - (0 in gt_instance[i])
+        tiles = [_panel(image, "input", PANEL), _panel(colorize_instances(gt_instance[i]), f"truth ({n_gt})", PANEL)]
+        for name, inst in columns:
+            n = len(np.unique(inst[i])) - (0 in inst[i])
+            tiles.append(_panel(colorize_instances(inst[i]), f"{name} ({n})", PANEL))
+        gap = np.full((tiles[0].shape[0], 4, 3), 255, np.uint8)
+        rows.append(np.concatenate([t for tile in tiles for t in (tile, gap)][:-1], 1))
+    sep = np.full((4, rows[0].shape[1], 3), 255, np.uint8)
+    grid = np.concatenate([r for row in rows for r in (row, sep)][:-1], 0)
+    return write_image(Path(path), grid[..., ::-1])  # RGB -> OpenCV's BGR
