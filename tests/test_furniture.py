@@ -128,3 +128,23 @@ def test_splits_hold_a_third_unseen_and_depend_only_on_the_seed():
     assert sum(s == "unseen" for s in a.values()) == 5  # ceil(13 / 3)
     assert a == assign_splits(list(reversed(names)), seed=0)
     assert a != assign_splits(names, seed=1)
+
+
+def test_an_imported_folder_is_a_shape_set_for_the_prior(source, tmp_path):
+    from prismonet.shapes.decoder import SDFDecoderConfig
+    from prismonet.shapes.pretrain import PretrainConfig, load_shape_set, pretrain
+    from prismonet.shapes.sdf_samples import SamplingConfig
+
+    import_setting("cars", tmp_path / "cars", source, progress=False)
+    shapes = load_shape_set(str(tmp_path / "cars"))
+    assert shapes.name == "cars:seen" and len(shapes.meshes) == 1 and shapes.category_ids == (0,)
+    v, f = shapes.meshes[0]
+    assert np.allclose(np.abs(v).max(0), [1.0, 0.25, 0.5], atol=1e-6) and f.shape[1] == 3
+    with pytest.raises(ValueError, match="no 'unseen' models"):
+        load_shape_set(str(tmp_path / "cars"), split="unseen")
+    with pytest.raises(ValueError, match="import-furniture"):
+        load_shape_set(str(tmp_path / "nothing"))
+    cfg = PretrainConfig(decoder=SDFDecoderConfig(latent_dim=4, width=16, depth=2), sampling=SamplingConfig(num_points=1024),
+                         epochs=2, points_per_shape=512)
+    prior = pretrain(cfg, tmp_path / "prior", shape_set=shapes, progress=False)
+    assert prior.shape_names == ["blendswap-cc-by-1-toy-car"] and prior.info["shape_set"] == "cars:seen"

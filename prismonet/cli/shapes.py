@@ -20,10 +20,10 @@ def cmd_pretrain(args) -> int:
     from prismonet.shapes.pretrain import PretrainConfig, pretrain
 
     cfg = load_config(PretrainConfig, args.config, args.set)
-    prior = pretrain(cfg, args.out, progress=not args.quiet)
+    prior = pretrain(cfg, args.out, shape_set=args.shapes, progress=not args.quiet)
     print(f"prior: {Path(args.out) / 'prior.safetensors'} (+ prior.json), {prior.info['train_seconds']:.0f} s of training")
     if not args.no_eval:
-        report = evaluate_prior(prior, resolution=args.resolution, progress=not args.quiet)
+        report = evaluate_prior(prior, shape_set=args.shapes, resolution=args.resolution, progress=not args.quiet)
         prior.info["quality"] = {k: v for k, v in report.items() if k != "per_shape"}
         prior.save(Path(args.out) / "prior")
         (Path(args.out) / "quality.json").write_text(json.dumps(report, indent=2))
@@ -35,7 +35,7 @@ def cmd_eval(args) -> int:
     from prismonet.shapes.evaluate import evaluate_prior
     from prismonet.shapes.prior import load_prior
 
-    report = evaluate_prior(load_prior(args.prior), resolution=args.resolution, progress=not args.quiet)
+    report = evaluate_prior(load_prior(args.prior), shape_set=args.shapes, resolution=args.resolution, progress=not args.quiet)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
     for row in report["per_shape"]:
@@ -90,9 +90,10 @@ def add_parsers(sub) -> None:
     imp.add_argument("--seed", type=int, default=0, help="seed of the seen / unseen split")
     imp.add_argument("--quiet", action="store_true")
     imp.set_defaults(func=cmd_import_furniture, outputs=[("out", "dir")])
-    pre = ssub.add_parser("pretrain", help="pre-train the auto-decoder on the Clevr shape set (resumable)")
+    pre = ssub.add_parser("pretrain", help="pre-train the auto-decoder on a shape set (resumable)")
     pre.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
     pre.add_argument("--config", help="JSON file with PretrainConfig fields")
+    pre.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture' (its seen models)")
     pre.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. decoder.width=128")
     pre.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=64, help="marching-cubes resolution of the quality check")
     pre.add_argument("--no-eval", action="store_true")
@@ -102,6 +103,7 @@ def add_parsers(sub) -> None:
     ev = ssub.add_parser("eval", help="Chamfer-L1 and IoU of a prior on its training shapes")
     ev.add_argument("prior", nargs="?", help="prior path stem (default: the shipped Clevr prior)")
     ev.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=64)
+    ev.add_argument("--shapes", default="clevr", help="the prior's training set: 'clevr' (default) or an imported folder")
     ev.add_argument("--json", help="also write the full report here")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_eval, outputs=[("json", "file")])

@@ -60,6 +60,19 @@ SETTINGS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 }
 """Which catalogue names belong to each setting (whole words; see ``select``)."""
 
+CATEGORIES: dict[str, tuple[tuple[str, str], ...]] = {
+    # setting: (word in the name, category), first match wins; else the setting's last category
+    "cars": (("car", "car"),),
+    "chairs": (("armchair", "armchair"), ("chair", "chair")),
+    "tabletop": (("mug", "mug"), ("cup", "mug"), ("bottle", "bottle"), ("glass", "glass"), ("can", "can")),
+}
+"""The category of each model within its setting (the shape prior's category ids)."""
+
+
+def category_of(setting: str, name: str) -> str:
+    rules = CATEGORIES[setting]
+    return next((c for w, c in rules if re.search(rf"\b{re.escape(w)}", name.lower())), rules[-1][1])
+
 
 class FurnitureError(ValueError):
     """No usable furniture source, an unknown setting, or a model that cannot be imported."""
@@ -253,7 +266,7 @@ def import_setting(setting: str, out: str | Path, source: str | Path | None = No
         mesh = trimesh.Trimesh(v, f, vertex_colors=np.rint(c * 255).astype(np.uint8), process=False)
         mesh.export(out / f"{name}.ply")
         half = (v.max(0) - v.min(0)) / 2
-        models.append({"name": name, "title": e.name, "file": f"{name}.ply", "faces": int(len(f)),
+        models.append({"name": name, "title": e.name, "category": category_of(setting, e.name), "file": f"{name}.ply", "faces": int(len(f)),
                        "half_extents": [round(float(h), 6) for h in half], "color": [round(float(x), 4) for x in c.mean(0)],
                        "watertight": bool(mesh.is_watertight), "creator": e.creator, "licence": LICENCES.get(e.library, "unknown"),
                        "source": {"package": PACKAGE, "library": e.library, "id": e.id, "model": e.model}, "entry": asdict(e)})

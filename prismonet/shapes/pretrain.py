@@ -62,12 +62,15 @@ class ShapeSet:
     instance_ids: tuple[int, ...]
 
 
-def load_shape_set(name: str = "clevr") -> ShapeSet:
-    """A named shape set; ``"clevr"``: the 27 Clevr shapes."""
+def load_shape_set(name: str = "clevr", split: str = "seen") -> ShapeSet:
+    """A shape set: ``"clevr"`` (the 27 Clevr shapes), or a folder of imported meshes
+    (``prismonet.shapes.furniture``: ``models.json`` + PLYs) whose ``split`` models it takes."""
     from prismonet.shapes.clevr_set import clevr_shapes, shape_mesh
 
     if name != "clevr":
-        raise ValueError(f"unknown shape set {name!r}; available: ['clevr']")
+        if (Path(name) / "models.json").is_file():
+            return _imported_set(Path(name), split)
+        raise ValueError(f"unknown shape set {name!r}; expected 'clevr' or a folder made by 'shapes import-furniture'")
     specs = clevr_shapes()
     return ShapeSet(
         name,
@@ -76,6 +79,26 @@ def load_shape_set(name: str = "clevr") -> ShapeSet:
         tuple(s.category_id for s in specs),
         tuple(s.instance_id for s in specs),
     )
+
+
+def _imported_set(folder: Path, split: str) -> ShapeSet:
+    """The ``split`` models of an imported folder, ordered by name; category ids by sorted category name."""
+    import trimesh
+
+    record = json.loads((folder / "models.json").read_text())
+    models = sorted((m for m in record["models"] if m["split"] == split), key=lambda m: m["name"])
+    if not models:
+        raise ValueError(f"{folder}: no {split!r} models")
+    cats = sorted({m.get("category", record["setting"]) for m in models})
+    meshes, inst, seen = [], [], {c: 0 for c in cats}
+    for m in models:
+        mesh = trimesh.load(folder / m["file"], process=False)
+        meshes.append((np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)))
+        c = m.get("category", record["setting"])
+        inst.append(seen[c])
+        seen[c] += 1
+    return ShapeSet(f"{record['setting']}:{split}", tuple(meshes), tuple(m["name"] for m in models),
+                    tuple(cats.index(m.get("category", record["setting"])) for m in models), tuple(inst))
 
 
 def clamped_l1(pred: torch.Tensor, target: torch.Tensor, delta: float) -> torch.Tensor:
