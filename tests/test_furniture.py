@@ -148,3 +148,20 @@ def test_an_imported_folder_is_a_shape_set_for_the_prior(source, tmp_path):
                          epochs=2, points_per_shape=512)
     prior = pretrain(cfg, tmp_path / "prior", shape_set=shapes, progress=False)
     assert prior.shape_names == ["blendswap-cc-by-1-toy-car"] and prior.info["shape_set"] == "cars:seen"
+
+
+def test_scenes_of_imported_meshes_keep_their_colours(source, tmp_path):
+    from prismonet.data.clevr import ClevrConfig
+    from prismonet.data.generate import render_range
+
+    import_setting("cars", tmp_path / "cars", source, progress=False)
+    cfg = ClevrConfig(num_objects=2, shapes=str(tmp_path / "cars"), scale_range=(0.6, 0.7))
+    out = render_range(cfg.to_dict(), 0, 0, 3)
+    assert (out["obj_color"][:, :2] == -1).all() and (out["obj_shape"][:, :2] == 0).all()
+    pix = out["rgb"][out["instance"] > 0].astype(np.float64)
+    assert len(pix) > 100
+    # every object pixel is a shaded red or a shaded texture colour: parallel to one of the two albedos
+    albedos = np.array([[255.0, 0.0, 0.0], TEX_RGB])
+    cos = (pix / np.linalg.norm(pix, axis=1, keepdims=True)) @ (albedos / np.linalg.norm(albedos, axis=1, keepdims=True)).T
+    assert (cos.max(1) > 0.995).all()
+    assert (cos.argmax(1) == 0).any() and (cos.argmax(1) == 1).any()

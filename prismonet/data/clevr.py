@@ -17,7 +17,8 @@ import torch
 from prismonet.data.errors import PlacementError
 from prismonet.geometry.camera import Camera, intrinsics_matrix, look_at
 from prismonet.geometry.pose import random_rotation_axis_angle, rotation_from_axis_cos_sin
-from prismonet.shapes.clevr_set import clevr_shapes, shape_mesh
+from prismonet.shapes.clevr_set import clevr_shapes
+from prismonet.shapes.library import CLEVR, shape_library
 
 GENERATOR_VERSION = "clevr-1"
 
@@ -112,6 +113,11 @@ class ClevrConfig:
     camera_eye: tuple[float, float, float] = CLEVR_CAMERA_EYE
     towers: TowerConfig | None = None
     """Block towers instead of scattered objects (``prismonet.data.towers``); see ``BLOCK_TOWERS``."""
+    shapes: str = CLEVR
+    """Shape library (``prismonet.shapes.library``): ``"clevr"``, or a folder of imported meshes, whose
+    objects keep their own colours."""
+    shape_split: str = "seen"
+    """Which models of an imported library: ``seen`` (the prior's), or ``unseen`` (novel shapes)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.towers, dict):  # read back from a dataset's meta
@@ -135,7 +141,7 @@ class ClevrConfig:
         """Height of the ground plane: 0, or below the lowest possible object when heights vary."""
         if not self.random_height:
             return 0.0
-        max_radius = self.scale_range[1] * max(s.bounding_radius() for s in clevr_shapes())
+        max_radius = self.scale_range[1] * max(s.bounding_radius() for s in shape_library(self.shapes, self.shape_split).specs)
         return float(self.height_range[0] - max_radius)
 
     def to_dict(self) -> dict:
@@ -153,6 +159,9 @@ class ObjectSpec:
     position: tuple[float, float, float]
     yaw: float
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    shapes: str = CLEVR
+    """The shape library ``shape_id`` indexes (with ``shape_split``; see ``prismonet.shapes.library``)."""
+    shape_split: str = "seen"
 
     def rotation(self) -> np.ndarray:
         cs = torch.tensor([math.cos(self.yaw), math.sin(self.yaw)], dtype=torch.float64)
@@ -160,7 +169,7 @@ class ObjectSpec:
 
     def world_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """The object's mesh in the world frame: ``x_world = s R x_obj + p``."""
-        v, f = shape_mesh(self.shape_id)
+        v, f = shape_library(self.shapes, self.shape_split).mesh(self.shape_id)
         return (self.scale * v) @ self.rotation().T + np.asarray(self.position), f
 
 
@@ -204,7 +213,7 @@ def check_placement_feasible(cfg: ClevrConfig) -> None:
     Bound: discs of the smallest footprint radius ``r`` (plus half the gap) with centres in the
     square cover at most ``DISC_PACKING_DENSITY`` of the square grown by ``r``.
     """
-    r = cfg.scale_range[0] * min(s.footprint_radius() for s in clevr_shapes()) + cfg.min_gap / 2
+    r = cfg.scale_range[0] * min(s.footprint_radius() for s in shape_library(cfg.shapes, cfg.shape_split).specs) + cfg.min_gap / 2
     side = 2 * cfg.area_half + 2 * r
     capacity = DISC_PACKING_DENSITY * side * side / (math.pi * r * r)
     if cfg.num_objects > capacity and not cfg.random_height and cfg.towers is None:
@@ -217,7 +226,8 @@ def check_placement_feasible(cfg: ClevrConfig) -> None:
 def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | None = None) -> SceneSpec:
     """Sample one scene layout. All randomness comes from ``rng``."""
     check_placement_feasible(cfg)
-    shapes = clevr_shapes()
+    lib = shape_library(cfg.shapes, cfg.shape_split)
+    shapes = lib.specs
     if camera is None or cfg.camera_jitter > 0:
         eye = np.asarray(cfg.camera_eye) + rng.uniform(-cfg.camera_jitter, cfg.camera_jitter, 3) * (cfg.camera_jitter > 0)
         camera = clevr_camera(cfg, tuple(eye.tolist()))
@@ -239,7 +249,7 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
                 if cfg.random_height:
                     z = float(rng.uniform(*cfg.height_range))
                 elif cfg.full_rotation:
-                    probe = ObjectSpec(spec.shape_id, spec.category_id, 0, scale, (0.0, 0.0, 0.0), yaw, tuple(axis))
+                    probe = ObjectSpec(spec.shape_id, spec.category_id, 0, scale, (0.0, 0.0, 0.0), yaw, tuple(axis), cfg.shapes, cfg.shape_split)
                     z = float(-probe.world_mesh()[0][:, 2].min())
                 else:
                     z = scale * spec.half_extents[2]
@@ -247,10 +257,9 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
                 radius = scale * (spec.bounding_radius() if use_ball else spec.footprint_radius())
                 centre = np.array([xy[0], xy[1], z]) if three_d else np.array([xy[0], xy[1], 0.0])
                 if all(np.linalg.norm(centre - c) >= radius + r + cfg.min_gap for c, r in zip(centres, radii)):
-                    color_id = int(rng.integers(len(COLOR_RGB)))
-                    objects.append(
-                        ObjectSpec(spec.shape_id, spec.category_id, color_id, scale, (float(xy[0]), float(xy[1]), z), yaw, tuple(axis))
-                    )
+                    color_id = -1 if lib.own_colors else int(rng.integers(len(COLOR_RGB)))
+                    objects.append(ObjectSpec(spec.shape_id, spec.category_id, color_id, scale, (float(xy[0]), float(xy[1]), z), yaw,
+                                              tuple(axis), cfg.shapes, cfg.shape_split))
                     centres.append(centre)
                     radii.append(radius)
                     break

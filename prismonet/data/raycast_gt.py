@@ -35,6 +35,23 @@ def world_rays(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
     return o, d
 
 
+def _surface_colors(spec: SceneSpec, geom: np.ndarray, prim: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` albedo of hits on objects ``geom`` at triangles ``prim``: the object's CLEVR colour, or
+    for shapes with their own colours (imported meshes) the colour of the triangle hit."""
+    from prismonet.shapes.library import shape_library
+
+    out = np.zeros((len(geom), 3))
+    for k, obj in enumerate(spec.objects):
+        sel = geom == k
+        if not sel.any():
+            continue
+        if obj.color_id >= 0:
+            out[sel] = COLOR_RGB[obj.color_id]
+        else:
+            out[sel] = shape_library(obj.shapes, obj.shape_split).face_colors(obj.shape_id)[prim[sel]]
+    return out
+
+
 def render_scene(
     spec: SceneSpec,
     cfg: ClevrConfig,
@@ -78,10 +95,10 @@ def render_scene(
     light = np.asarray(cfg.light_dir, dtype=np.float64)
     light = light / np.linalg.norm(light)
     shade = cfg.ambient + cfg.diffuse * np.clip(normals @ light, 0.0, None)
-    colors = np.asarray([COLOR_RGB[obj.color_id] for obj in spec.objects], dtype=np.float64)
     rgb = np.broadcast_to(np.asarray(spec.ground_color, dtype=np.float64), (H * W, 3)).copy()
     if fg.any():
-        rgb[fg] = colors[geom[fg]] * shade[fg, None]
+        prim = hit["primitive_ids"].numpy().astype(np.int64)
+        rgb[fg] = _surface_colors(spec, geom[fg], prim[fg]) * shade[fg, None]
     rgb = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
 
     if cfg.depth_noise_eta > 0:

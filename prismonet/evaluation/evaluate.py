@@ -73,15 +73,26 @@ RAISED_FRACTION = 0.25
 fraction of its scale above the ground."""
 
 
-def _raised(b, j: int, k: int) -> bool:
-    """Whether object ``k`` of scene ``j`` of batch ``b`` is raised (a known Clevr shape only)."""
-    from prismonet.shapes.clevr_set import clevr_shapes
-
+def _raised(b, j: int, k: int, specs) -> bool:
+    """Whether object ``k`` of scene ``j`` of batch ``b`` is raised (a shape of ``specs`` only)."""
     sid = int(b.obj_shape[j, k])
-    if not 0 <= sid < len(clevr_shapes()) or float(b.obj_axis[j, k, 2]) < 0.999:  # unknown, or tilted
+    if not 0 <= sid < len(specs) or float(b.obj_axis[j, k, 2]) < 0.999:  # unknown, or tilted
         return False
-    bottom = float(b.obj_position[j, k, 2] - b.ground_z[j]) - float(b.obj_scale[j, k]) * clevr_shapes()[sid].half_extents[2]
+    bottom = float(b.obj_position[j, k, 2] - b.ground_z[j]) - float(b.obj_scale[j, k]) * specs[sid].half_extents[2]
     return bottom > RAISED_FRACTION * float(b.obj_scale[j, k])
+
+
+def dataset_shapes(ds):
+    """The ``ShapeSpec`` list a dataset's ``obj_shape`` ids index (its generator's shape library;
+    Clevr's when the dataset does not say), and whether rotational symmetries are known for them."""
+    from prismonet.shapes.library import CLEVR, shape_library
+
+    cfg = (getattr(ds, "meta", None) or {}).get("config", {}) or {}
+    name = cfg.get("shapes", CLEVR)
+    try:
+        return shape_library(name, cfg.get("shape_split", "seen")).specs, name == CLEVR
+    except ValueError:  # the import it was made from is not here: ids are not interpretable
+        return (), False
 
 
 @torch.no_grad()
@@ -109,6 +120,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     pos_err, rot_err, rot_sym, pair_step, scale_ratio, height_err, raised = [], [], [], [], [], [], []
     model.eval()
     seconds, decoded = 0.0, 0.0
+    specs, clevr_ids = dataset_shapes(ds)
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
@@ -131,12 +143,13 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
                 pos_err.append(float((p.position[j, pk - 1] - b.obj_position[j, gk - 1]).norm()))
                 height_err.append(float((p.position[j, pk - 1, 2] - b.obj_position[j, gk - 1, 2]).abs()))
-                raised.append(_raised(b, j, gk - 1))
+                raised.append(_raised(b, j, gk - 1, specs))
                 pair_step.append(int(steps_1[j, pk]))
                 scale_ratio.append(float(p.scale[j, pk - 1] / b.obj_scale[j, gk - 1]))
                 gt_yaw = float(b.obj_yaw[j, gk - 1])
                 rot_err.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, None))
-                rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, symmetry_period(int(b.obj_shape[j, gk - 1]))))
+                period = symmetry_period(int(b.obj_shape[j, gk - 1])) if clevr_ids else None
+                rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, period))
     cat = np.concatenate
     results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record()}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))

@@ -52,16 +52,16 @@ class ShapeSpec:
     def footprint_radius(self) -> float:
         """Radius of the smallest disc around the origin that covers the xy footprint (scale 1)."""
         hx, hy, _ = self.half_extents
-        return float(np.hypot(hx, hy)) if self.category == "cube" else max(hx, hy)
+        return max(hx, hy) if self.category in ("sphere", "cylinder") else float(np.hypot(hx, hy))  # else its box
 
     def bounding_radius(self) -> float:
         """Radius of the smallest ball around the origin that covers the shape (scale 1)."""
         hx, hy, hz = self.half_extents
-        if self.category == "cube":
-            return float(np.linalg.norm([hx, hy, hz]))
+        if self.category == "sphere":
+            return max(hx, hy, hz)
         if self.category == "cylinder":
             return float(np.hypot(max(hx, hy), hz))
-        return max(hx, hy, hz)
+        return float(np.linalg.norm([hx, hy, hz]))  # a cube, or any other shape: its box
 
 
 def category_id(name: str) -> int:

@@ -82,23 +82,13 @@ def load_shape_set(name: str = "clevr", split: str = "seen") -> ShapeSet:
 
 
 def _imported_set(folder: Path, split: str) -> ShapeSet:
-    """The ``split`` models of an imported folder, ordered by name; category ids by sorted category name."""
-    import trimesh
+    """The ``split`` models of an imported folder (``prismonet.shapes.library``)."""
+    from prismonet.shapes.library import shape_library
 
-    record = json.loads((folder / "models.json").read_text())
-    models = sorted((m for m in record["models"] if m["split"] == split), key=lambda m: m["name"])
-    if not models:
-        raise ValueError(f"{folder}: no {split!r} models")
-    cats = sorted({m.get("category", record["setting"]) for m in models})
-    meshes, inst, seen = [], [], {c: 0 for c in cats}
-    for m in models:
-        mesh = trimesh.load(folder / m["file"], process=False)
-        meshes.append((np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)))
-        c = m.get("category", record["setting"])
-        inst.append(seen[c])
-        seen[c] += 1
-    return ShapeSet(f"{record['setting']}:{split}", tuple(meshes), tuple(m["name"] for m in models),
-                    tuple(cats.index(m.get("category", record["setting"])) for m in models), tuple(inst))
+    lib = shape_library(str(folder), split)
+    return ShapeSet(f"{json.loads((folder / 'models.json').read_text())['setting']}:{split}",
+                    tuple(lib.mesh(s.shape_id) for s in lib.specs), tuple(Path(f).stem for f in lib.files),
+                    tuple(s.category_id for s in lib.specs), tuple(s.instance_id for s in lib.specs))
 
 
 def clamped_l1(pred: torch.Tensor, target: torch.Tensor, delta: float) -> torch.Tensor:
