@@ -94,3 +94,17 @@ def test_unknown_category():
     assert category_id("cube") == 2
     with pytest.raises(UnknownCategoryError, match="unknown shape category 'cone'"):
         category_id("cone")
+
+
+def test_fast_winding_number_equals_the_direct_formula():
+    import trimesh
+
+    from prismonet.shapes.sdf_samples import winding_number_direct
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    keep = mesh.faces[: len(mesh.faces) - 30]  # a sphere with a hole
+    rng = np.random.default_rng(0)
+    p = np.concatenate([rng.uniform(-1.2, 1.2, (600, 3)), mesh.vertices[:20] * 1.001])  # some right at the surface
+    fast, ref = winding_number(mesh.vertices, keep, p), winding_number_direct(mesh.vertices, keep, p)
+    assert np.abs(fast - ref).max() < 1e-9
+    assert ((fast > 0.5) == (np.linalg.norm(p, axis=1) < 0.99)).mean() > 0.97  # inside the sphere, despite the hole
