@@ -116,19 +116,22 @@ def test_monet_loss_falls_on_a_few_scenes():
     assert all(torch.isfinite(torch.tensor(losses))) and sum(losses[-5:]) / 5 < 0.9 * sum(losses[:5]) / 5, losses
 
 
-def test_monet_trains_and_evaluates_from_the_command_line(tmp_path):
+@pytest.mark.parametrize("name, sizes", [
+    ("monet", ["monet.unet_channels=8", "monet.vae_channels=[8,8,8,8]", "monet.decoder_channels=8"]),
+    ("genesis", ["genesis.latent_dim=8", "genesis.enc_channels=[8,8,8,8]", "genesis.dec_channels=8", "genesis.lstm=16"]),
+])
+def test_baseline_trains_and_evaluates_from_the_command_line(tmp_path, name, sizes):
     import json
 
     from prismonet.cli import main
 
     samples = str(shipped_samples())
-    small = ["--set", f"data={samples}", "--set", "split=test", "--set", "batch_size=2", "--set", "monet.unet_channels=8",
-             "--set", "monet.vae_channels=[8,8,8,8]", "--set", "monet.decoder_channels=8", "--set", "lr=1e-4"]
-    run = str(tmp_path / "monet")
-    assert main(["baselines", "train", "monet", "--out", run, "--set", "steps=2", *small, "--quiet"]) == 0
+    small = [f"data={samples}", "split=test", "batch_size=2", "lr=1e-4", *sizes]
+    run = str(tmp_path / name)
+    assert main(["baselines", "train", name, "--out", run, "--set", "steps=2", *[a for kv in small for a in ("--set", kv)], "--quiet"]) == 0
     assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
     r = json.loads((tmp_path / "r.json").read_text())
-    assert r["baseline"] == "monet" and r["scenes"] == 4 and 0 <= r["ARI"] <= 1
+    assert r["baseline"] == name and r["scenes"] == 4 and 0 <= r["ARI"] <= 1
 
 
 def _small_genesis(**kw):
@@ -180,21 +183,6 @@ def test_genesis_loss_falls_on_a_few_scenes():
         excess.append(loss.item() - floor)
     # measured: 1376 -> 1317 (sums of the first and last 5 steps above the floor)
     assert all(map(math.isfinite, excess)) and sum(excess[-5:]) < 0.97 * sum(excess[:5]), excess
-
-
-def test_genesis_trains_and_evaluates_from_the_command_line(tmp_path):
-    import json
-
-    from prismonet.cli import main
-
-    samples = str(shipped_samples())
-    small = ["--set", f"data={samples}", "--set", "split=test", "--set", "batch_size=2", "--set", "genesis.latent_dim=8",
-             "--set", "genesis.enc_channels=[8,8,8,8]", "--set", "genesis.dec_channels=8", "--set", "genesis.lstm=16"]
-    run = str(tmp_path / "genesis")
-    assert main(["baselines", "train", "genesis", "--out", run, "--set", "steps=2", *small, "--quiet"]) == 0
-    assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
-    r = json.loads((tmp_path / "r.json").read_text())
-    assert r["baseline"] == "genesis" and r["scenes"] == 4
 
 
 def test_mask_figure_has_a_labelled_column_per_model(tmp_path):

@@ -31,6 +31,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from prismonet.baselines.blocks import BroadcastDecoder, conv_encoder
 from prismonet.baselines.output import SlotOutput
 
 
@@ -59,31 +60,6 @@ class GenesisConfig:
             raise ValueError(f"genesis: sigma_x must be positive, geco_lr >= 0 and geco_ema in [0, 1), got {self}")
 
 
-def _encoder(cfg: GenesisConfig, in_ch: int, out_dim: int) -> nn.Sequential:
-    layers, c = [], in_ch
-    for ch in cfg.enc_channels:
-        layers += [nn.Conv2d(c, ch, 3, stride=2, padding=1), nn.ReLU()]
-        c = ch
-    side = cfg.image_size // 2 ** len(cfg.enc_channels)
-    return nn.Sequential(*layers, nn.Flatten(), nn.Linear(c * side * side, 256), nn.ReLU(), nn.Linear(256, out_dim))
-
-
-class BroadcastDecoder(nn.Module):
-    """Latent ``(n, D)`` -> ``(n, out, H, W)`` by a spatial broadcast with x, y coordinates."""
-
-    def __init__(self, cfg: GenesisConfig, out: int) -> None:
-        super().__init__()
-        C, S = cfg.dec_channels, cfg.image_size + 8
-        self.net = nn.Sequential(nn.Conv2d(cfg.latent_dim + 2, C, 3), nn.ReLU(), nn.Conv2d(C, C, 3), nn.ReLU(),
-                                 nn.Conv2d(C, C, 3), nn.ReLU(), nn.Conv2d(C, C, 3), nn.ReLU(), nn.Conv2d(C, out, 1))
-        ys, xs = torch.meshgrid(torch.linspace(-1, 1, S), torch.linspace(-1, 1, S), indexing="ij")
-        self.register_buffer("coords", torch.stack([xs, ys])[None], persistent=False)
-
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        S = self.coords.shape[-1]
-        return self.net(torch.cat([z[:, :, None, None].expand(-1, -1, S, S), self.coords.expand(z.shape[0], -1, -1, -1)], 1))
-
-
 def _gaussian(params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     mu, raw = params.chunk(2, dim=-1)
     return mu, F.softplus(raw) + 1e-4
@@ -108,12 +84,12 @@ class Genesis(nn.Module):
         super().__init__()
         self.cfg = cfg
         D, L = cfg.latent_dim, cfg.lstm
-        self.image_encoder = _encoder(cfg, 3, L)
+        self.image_encoder = conv_encoder(3, cfg.enc_channels, cfg.image_size, L)
         self.mask_lstm = nn.LSTMCell(L + D, L)
         self.mask_head = nn.Linear(L, 2 * D)
-        self.mask_decoder = BroadcastDecoder(cfg, 1)
-        self.comp_encoder = _encoder(cfg, 4, 2 * D)
-        self.comp_decoder = BroadcastDecoder(cfg, 3)
+        self.mask_decoder = BroadcastDecoder(D, cfg.dec_channels, 1, cfg.image_size)
+        self.comp_encoder = conv_encoder(4, cfg.enc_channels, cfg.image_size, 2 * D)
+        self.comp_decoder = BroadcastDecoder(D, cfg.dec_channels, 3, cfg.image_size)
         self.prior_lstm = nn.LSTMCell(D, L)
         self.prior_head = nn.Linear(L, 2 * D)
         self.comp_prior = nn.Sequential(nn.Linear(D, 256), nn.ReLU(), nn.Linear(256, 2 * D))

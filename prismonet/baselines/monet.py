@@ -26,6 +26,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from prismonet.baselines.blocks import BroadcastDecoder, conv_encoder
 from prismonet.baselines.output import SlotOutput
 
 
@@ -94,26 +95,15 @@ class ComponentVAE(nn.Module):
 
     def __init__(self, cfg: MONetConfig) -> None:
         super().__init__()
-        layers, cin = [], 4
-        for c in cfg.vae_channels:
-            layers += [nn.Conv2d(cin, c, 3, stride=2, padding=1), nn.ReLU()]
-            cin = c
-        side = cfg.image_size // 2 ** len(cfg.vae_channels)
-        self.encoder = nn.Sequential(*layers, nn.Flatten(), nn.Linear(cin * side * side, 256), nn.ReLU(), nn.Linear(256, 2 * cfg.latent_dim))
-        D, S = cfg.decoder_channels, cfg.image_size + 8  # four unpadded 3x3 convolutions take 8 pixels off
-        self.decoder = nn.Sequential(nn.Conv2d(cfg.latent_dim + 2, D, 3), nn.ReLU(), nn.Conv2d(D, D, 3), nn.ReLU(),
-                                     nn.Conv2d(D, D, 3), nn.ReLU(), nn.Conv2d(D, D, 3), nn.ReLU(), nn.Conv2d(D, 4, 1))
-        ys, xs = torch.meshgrid(torch.linspace(-1, 1, S), torch.linspace(-1, 1, S), indexing="ij")
-        self.register_buffer("coords", torch.stack([xs, ys])[None], persistent=False)
+        self.encoder = conv_encoder(4, cfg.vae_channels, cfg.image_size, 2 * cfg.latent_dim)
+        self.decoder = BroadcastDecoder(cfg.latent_dim, cfg.decoder_channels, 4, cfg.image_size)
 
     def encode(self, image: torch.Tensor, log_mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mu, raw = self.encoder(torch.cat([image, log_mask], 1)).chunk(2, dim=1)
         return mu, F.softplus(raw) + 1e-4  # mean, standard deviation
 
     def decode(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        B, S = z.shape[0], self.coords.shape[-1]
-        grid = torch.cat([z[:, :, None, None].expand(-1, -1, S, S), self.coords.expand(B, -1, -1, -1)], 1)
-        out = self.decoder(grid)
+        out = self.decoder(z)
         return torch.sigmoid(out[:, :3]), out[:, 3:]
 
 

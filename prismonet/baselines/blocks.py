@@ -1,0 +1,35 @@
+"""Building blocks that MONet and GENESIS share: a strided convolutional encoder with an MLP head, and
+the spatial broadcast decoder (Watters et al. 2019) both papers use."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+
+def conv_encoder(in_ch: int, channels: tuple[int, ...], image_size: int, out_dim: int) -> nn.Sequential:
+    """3x3 stride-2 convolutions with ReLU, then an MLP of 256: ``(n, in_ch, S, S)`` -> ``(n, out_dim)``."""
+    layers, c = [], in_ch
+    for ch in channels:
+        layers += [nn.Conv2d(c, ch, 3, stride=2, padding=1), nn.ReLU()]
+        c = ch
+    side = image_size // 2 ** len(channels)
+    return nn.Sequential(*layers, nn.Flatten(), nn.Linear(c * side * side, 256), nn.ReLU(), nn.Linear(256, out_dim))
+
+
+class BroadcastDecoder(nn.Module):
+    """Latent ``(n, D)`` -> ``(n, out, S, S)``: the latent tiled over an ``(S + 8)``-square grid with x, y
+    coordinates in [-1, 1], four unpadded 3x3 convolutions of ``channels`` (each takes 2 pixels off), a 1x1
+    convolution to ``out``."""
+
+    def __init__(self, latent_dim: int, channels: int, out: int, image_size: int) -> None:
+        super().__init__()
+        C, S = channels, image_size + 8
+        self.net = nn.Sequential(nn.Conv2d(latent_dim + 2, C, 3), nn.ReLU(), nn.Conv2d(C, C, 3), nn.ReLU(),
+                                 nn.Conv2d(C, C, 3), nn.ReLU(), nn.Conv2d(C, C, 3), nn.ReLU(), nn.Conv2d(C, out, 1))
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, S), torch.linspace(-1, 1, S), indexing="ij")
+        self.register_buffer("coords", torch.stack([xs, ys])[None], persistent=False)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        S = self.coords.shape[-1]
+        return self.net(torch.cat([z[:, :, None, None].expand(-1, -1, S, S), self.coords.expand(z.shape[0], -1, -1, -1)], 1))
