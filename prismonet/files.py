@@ -183,3 +183,16 @@ def write_image(path, image: np.ndarray) -> Path:
         raise InputError(f"{shown(p)}: OpenCV cannot write images of type {p.suffix or '(no extension)'!r}")
     p.write_bytes(buf.tobytes())
     return p
+
+
+def write_atomic(path, data: bytes | str) -> Path:
+    """Write ``data`` to a hidden temporary file beside ``path`` and rename it into place, so that an
+    interrupted write never leaves a half-written ``path``."""
+    p = Path(path)
+    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return p

@@ -206,6 +206,12 @@ CASES = [
     ("view not covered", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_long}"], "of the model's view"),
     ("min pixels negative", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--min-pixels", "-5"], "--min-pixels"),
     ("set lr abc", ["train", str(CONFIG), "--out", "{tmp}/run", "--set", "lr=abc"], "lr: expected float"),
+    ("unknown shape library", ["data", "clevr", "--shapes", "{tmp}/noshapes", "--out", "{tmp}/d", "--split", "2,0,0"], "unknown shape library"),
+    ("towers min over max", ["data", "towers", "--objects", "3", "--min-objects", "4", "--out", "{tmp}/d"], "must not exceed"),
+    ("furniture source missing", ["shapes", "import-furniture", "cars", "--source", "{tmp}/nodeb", "--out", "{tmp}/f"], "no furniture source"),
+    ("pretrain unknown shapes", ["shapes", "pretrain", "--shapes", "{tmp}/noshapes", "--out", "{tmp}/p"], "unknown shape set"),
+    ("unknown model name", ["evaluate", "nosuchmodel", "{good}", "--split", "test"], "shipped models by name"),
+    ("baseline figure no run", ["baselines", "figure", "{tmp}/norun", "--data", "{good}", "--out", "{tmp}/f.png"], "no such checkpoint"),
     ("unknown command", ["bogus"], "invalid choice"),
 ]
 

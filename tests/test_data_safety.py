@@ -64,3 +64,24 @@ def test_a_run_that_cannot_start_leaves_no_folder(tmp_path):
     with pytest.raises(ValueError):
         train(cfg, tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_write_atomic_never_leaves_a_half_written_file(tmp_path, monkeypatch):
+    import os
+
+    import pytest
+
+    from prismonet.files import write_atomic
+
+    target = tmp_path / "models.json"
+    write_atomic(target, '{"old": 1}')
+    assert target.read_text() == '{"old": 1}' and sorted(p.name for p in tmp_path.iterdir()) == ["models.json"]
+
+    def interrupted(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_atomic(target, '{"new": 2}')
+    assert target.read_text() == '{"old": 1}'  # the old file stands, and no temporary is left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models.json"]

@@ -3,6 +3,8 @@ the spatial broadcast decoder (Watters et al. 2019) both papers use."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn as nn
 
@@ -33,3 +35,20 @@ class BroadcastDecoder(nn.Module):
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         S = self.coords.shape[-1]
         return self.net(torch.cat([z[:, :, None, None].expand(-1, -1, S, S), self.coords.expand(z.shape[0], -1, -1, -1)], 1))
+
+
+def reparameterize(mu: torch.Tensor, sd: torch.Tensor, generator: torch.Generator | None, training: bool) -> torch.Tensor:
+    """A sample ``mu + sd * noise`` while training (noise from ``generator`` when given), the mean otherwise."""
+    if not training:
+        return mu
+    noise = torch.randn(mu.shape, generator=generator, dtype=mu.dtype) if generator is not None else torch.randn_like(mu)
+    return mu + sd * noise
+
+
+def mixture_nll(rgb: torch.Tensor, colors: torch.Tensor, log_masks: torch.Tensor, sigma) -> torch.Tensor:
+    """``(B,)`` negative log likelihood, summed over pixels, of ``rgb (B, 3, H, W)`` under the spatial
+    Gaussian mixture of ``colors (B, K, 3, H, W)`` weighted by ``exp(log_masks) (B, K, H, W)``, with
+    standard deviation ``sigma`` (a number, or a tensor broadcasting to ``(1, K, 1, 1, 1)``)."""
+    sigma = torch.as_tensor(sigma, dtype=rgb.dtype)
+    log_px = (-0.5 * ((rgb[:, None] - colors) / sigma) ** 2 - torch.log(sigma) - 0.5 * math.log(2 * math.pi)).sum(2)
+    return -torch.logsumexp(log_masks + log_px, dim=1).sum((1, 2))

@@ -24,14 +24,13 @@ Shapes: B batch, K components, H x W image.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from prismonet.baselines.blocks import BroadcastDecoder, conv_encoder
+from prismonet.baselines.blocks import BroadcastDecoder, conv_encoder, mixture_nll, reparameterize
 from prismonet.baselines.output import SlotOutput
 
 
@@ -104,17 +103,11 @@ class Genesis(nn.Module):
         for _ in range(K - 1):
             state = self.mask_lstm(torch.cat([h, z_prev], 1), state)
             mu, sd = _gaussian(self.mask_head(state[0]))
-            z_prev = self._sample(mu, sd, generator)
+            z_prev = reparameterize(mu, sd, generator, self.training)
             zs.append(z_prev)
             mus.append(mu)
             sds.append(sd)
         return torch.stack(zs, 1), torch.stack(mus, 1), torch.stack(sds, 1)
-
-    def _sample(self, mu, sd, generator):
-        if not self.training:
-            return mu
-        noise = torch.randn(mu.shape, generator=generator, dtype=mu.dtype) if generator is not None else torch.randn_like(mu)
-        return mu + sd * noise
 
     def _decode(self, rgb: torch.Tensor, generator: torch.Generator | None):
         B, K, H, W = rgb.shape[0], self.cfg.num_slots, *rgb.shape[-2:]
@@ -122,7 +115,7 @@ class Genesis(nn.Module):
         logits = self.mask_decoder(zm.reshape(B * (K - 1), -1)).reshape(B, K - 1, H, W)
         log_pi = stick_breaking(logits)
         mu_c, sd_c = _gaussian(self.comp_encoder(torch.cat([rgb.repeat_interleave(K, 0), log_pi.reshape(B * K, 1, H, W)], 1)))
-        zc = self._sample(mu_c, sd_c, generator)
+        zc = reparameterize(mu_c, sd_c, generator, self.training)
         colors = torch.sigmoid(self.comp_decoder(zc)).reshape(B, K, 3, H, W)
         return log_pi, colors, (zm, mu_m, sd_m), (zc.reshape(B, K, -1), mu_c.reshape(B, K, -1), sd_c.reshape(B, K, -1))
 
@@ -149,9 +142,7 @@ class Genesis(nn.Module):
     def loss(self, rgb: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """GECO: mean KL + lambda x the summed mixture NLL; lambda is updated from this batch's NLL."""
         log_pi, colors, m, c = self._decode(rgb, generator)
-        s = self.cfg.sigma_x
-        log_px = (-0.5 * ((rgb[:, None] - colors) / s) ** 2 - math.log(s) - 0.5 * math.log(2 * math.pi)).sum(2)
-        nll = -torch.logsumexp(log_pi + log_px, dim=1).sum((1, 2))  # (B,)
+        nll = mixture_nll(rgb, colors, log_pi, self.cfg.sigma_x)  # (B,)
         per_value = nll.mean().detach() / (3 * rgb.shape[-2] * rgb.shape[-1])
         if self.training:
             with torch.no_grad():

@@ -19,14 +19,13 @@ Shapes: B batch, K components, H x W image.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from prismonet.baselines.blocks import BroadcastDecoder, conv_encoder
+from prismonet.baselines.blocks import BroadcastDecoder, conv_encoder, mixture_nll, reparameterize
 from prismonet.baselines.output import SlotOutput
 
 
@@ -130,8 +129,7 @@ class MONet(nn.Module):
         B, K, H, W = log_m.shape
         x = rgb.repeat_interleave(K, 0)
         mu, sd = self.vae.encode(x, log_m.reshape(B * K, 1, H, W))
-        noise = torch.randn(mu.shape, generator=generator, dtype=mu.dtype) if generator is not None else torch.randn_like(mu)
-        z = mu + sd * noise if self.training else mu
+        z = reparameterize(mu, sd, generator, self.training)
         colors, mask_logits = self.vae.decode(z)
         return log_m, mu, sd, colors.reshape(B, K, 3, H, W), mask_logits.reshape(B, K, H, W), z.reshape(B, K, -1)
 
@@ -148,8 +146,7 @@ class MONet(nn.Module):
         B, K = log_m.shape[:2]
         sigma = torch.full((1, K, 1, 1, 1), self.cfg.sigma_fg, dtype=rgb.dtype)
         sigma[:, 0] = self.cfg.sigma_bg
-        log_px = (-0.5 * ((rgb[:, None] - colors) / sigma) ** 2 - torch.log(sigma) - 0.5 * math.log(2 * math.pi)).sum(2)  # (B, K, H, W)
-        nll = -torch.logsumexp(log_m + log_px, dim=1).sum((1, 2))  # (B,)
+        nll = mixture_nll(rgb, colors, log_m, sigma)
         kl_z = (0.5 * (mu**2 + sd**2 - 1) - torch.log(sd)).sum(1).reshape(B, K).sum(1)
         log_m_dec = torch.log_softmax(mask_logits, dim=1)
         kl_m = (log_m.exp() * (log_m - log_m_dec)).sum((1, 2, 3))

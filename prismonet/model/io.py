@@ -48,15 +48,13 @@ def load_model(path: str | Path, num_slots: int | None = None):
     from prismonet.model.prismonet import PriSMONet
 
     p = named_model(str(path)) or Path(path)
-    if not p.exists() and not p.with_suffix(".json").exists() and "/" not in str(path) and not p.suffix:
-        raise CheckpointError(f"{path}: no such model; shipped models: {', '.join(['shipped'] + model_names())}, "
-                              "or give a run folder or model path")
     stem = p / "model" if p.is_dir() else (p.with_suffix("") if p.suffix in (".safetensors", ".json") else p)
     config = stem.with_suffix(".json")
     if p.is_dir() and not config.is_file() and (p / "checkpoint.safetensors").is_file():
         return _load_training_checkpoint(p / "checkpoint.safetensors", num_slots)
     if not config.is_file():
-        raise CheckpointError(f"{config}: no such model config (expected model.json beside model.safetensors)")
+        raise CheckpointError(f"{config}: no such model config (expected model.json beside model.safetensors); "
+                              f"shipped models by name: {', '.join(['shipped'] + model_names())}")
     try:
         info = json.loads(config.read_text())
         cfg = _build(ModelConfig, info["model"], "model.")

@@ -153,14 +153,13 @@ class PriSMONet(nn.Module):
             params.active = None if live is None else live[:, None].clone()
             obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
             d, m, c = obj.depth, obj.mask, obj.color[:, 0]  # (B, 1, H, W) x2, (B, 3, H, W)
+            win = m & (d < cur_depth)
             if live is not None:  # drop the slot where it explains nothing more, and stop there
-                win = m & (d < cur_depth)
                 after = stop.count(torch.where(win, c, cur_image), torch.minimum(torch.where(win, d, cur_depth), bg_depth))
                 live = live & stop.gained(before, after)
                 before = torch.where(live[:, None], after, before)
-                m = m & live[:, None, None, None]
+                m, win = m & live[:, None, None, None], win & live[:, None, None, None]
                 params.active = live[:, None].clone()
-            win = m & (d < cur_depth)
             cur_image = torch.where(win, c, cur_image)
             cur_depth = torch.where(win, d, cur_depth)
             cur_mask = torch.maximum(cur_mask, m.to(image.dtype))

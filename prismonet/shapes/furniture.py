@@ -242,6 +242,7 @@ def import_setting(setting: str, out: str | Path, source: str | Path | None = No
 
     import trimesh
 
+    from prismonet.files import write_atomic
     from prismonet.shapes.normalize import MeshError, normalize_mesh
 
     libs = open_libraries(source)
@@ -264,7 +265,7 @@ def import_setting(setting: str, out: str | Path, source: str | Path | None = No
             continue
         name = slug(e)
         mesh = trimesh.Trimesh(v, f, vertex_colors=np.rint(c * 255).astype(np.uint8), process=False)
-        mesh.export(out / f"{name}.ply")
+        write_atomic(out / f"{name}.ply", mesh.export(file_type="ply"))
         half = (v.max(0) - v.min(0)) / 2
         models.append({"name": name, "title": e.name, "category": category_of(setting, e.name), "file": f"{name}.ply", "faces": int(len(f)),
                        "half_extents": [round(float(h), 6) for h in half], "color": [round(float(x), 4) for x in c.mean(0)],
@@ -275,5 +276,5 @@ def import_setting(setting: str, out: str | Path, source: str | Path | None = No
         m["split"] = splits[m["name"]]
     record = {"setting": setting, "package": PACKAGE, "max_faces": max_faces, "seed": seed, "models": models, "skipped": skipped,
               "counts": {s: sum(m["split"] == s for m in models) for s in ("seen", "unseen")}}
-    (out / "models.json").write_text(json.dumps(record, indent=1))
+    write_atomic(out / "models.json", json.dumps(record, indent=1))  # written last: the index of a complete import
     return record
