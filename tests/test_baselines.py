@@ -70,10 +70,12 @@ def test_train_resume_and_evaluate_commands(tmp_path, capsys):
              "--set", "slot_attention.hidden=16", "--set", "slot_attention.slot_dim=16", "--set", "checkpoint_every=2"]
     run = str(tmp_path / "sa")
     assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=2", *small, "--quiet"]) == 0
-    assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=4", *small, "--quiet"]) != 0  # another config
+    assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=2", *small, "--set", "lr=1e-3",
+                 "--quiet"]) != 0  # another config
     assert "another config" in capsys.readouterr().err
+    assert main(["baselines", "train", "slot_attention", "--out", run, "--set", "steps=3", *small, "--quiet"]) == 0  # longer
     rows = [json.loads(line) for line in (tmp_path / "sa" / "log.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in rows] == [1, 2]
+    assert [r["step"] for r in rows] == [1, 2, 3]
     assert main(["baselines", "evaluate", run, samples, "--limit", "4", "--json", str(tmp_path / "r.json")]) == 0
     r = json.loads((tmp_path / "r.json").read_text())
     assert r["scenes"] == 4 and 0 <= r["AP0.5"] <= 1 and 0 <= r["img_RMSE"] <= 1

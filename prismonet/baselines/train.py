@@ -62,6 +62,11 @@ def image_size(cfg: BaselineTrainConfig) -> int:
     return getattr(cfg, cfg.name).image_size
 
 
+RESUME_IGNORED = ("steps", "checkpoint_every", "log_every")
+"""Fields that may change when a run resumes (the schedule does not depend on ``steps``, so a run can be
+stopped at a shared budget or trained for longer)."""
+
+
 def learning_rate(cfg: BaselineTrainConfig, step: int) -> float:
     warm = min(1.0, (step + 1) / cfg.warmup) if cfg.warmup else 1.0
     return cfg.lr * warm * 0.5 ** (max(0, step - cfg.warmup) / cfg.decay_half_life)
@@ -87,7 +92,10 @@ def train_baseline(cfg: BaselineTrainConfig, run_dir: str | Path, progress: bool
     start, elapsed = 0, 0.0
     if ckpt.is_file():
         tensors, meta = load_checkpoint(ckpt)
-        if meta.get("config") != cfg_json:
+        def key(d: dict) -> dict:
+            return {k: v for k, v in d.items() if k not in RESUME_IGNORED}
+
+        if key(meta.get("config", {})) != key(cfg_json):
             raise TrainingError(f"{ckpt}: was written with another config; use a new run folder or the same config")
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         load_optimizer(opt, tensors, meta["optimizer"])

@@ -101,6 +101,36 @@ def cmd_subset(args) -> int:
     return 0
 
 
+def cmd_blender(args) -> int:
+    from prismonet.data.blender import generate_blender
+
+    meta = generate_blender(args.out, args.rung, scenes=args.scenes, seed=args.seed, first_index=args.first_index,
+                            workers=args.workers, python=args.python, progress=not args.quiet)
+    vs = meta["blender"]["vs_training_renderer"]
+    print(f"wrote {args.scenes} rung-{args.rung} scenes to {args.out} in {meta['seconds']:.1f} s; against the training "
+          f"renderer's images of the same scenes: PSNR {vs['PSNR']:.2f} dB, mean |difference| {vs['mean_abs']:.4f}")
+    return 0
+
+
+def _add_blender(dsub) -> None:
+    from prismonet.files import arg_int
+
+    p = dsub.add_parser("blender", help="the photoreal test ladder: the generator's test scenes rendered by Blender Cycles "
+                                        "with CLEVR's assets (needs scripts/setup_blender.sh)")
+    p.add_argument("--rung", choices=("a", "b", "c", "d"), required=True,
+                   help="a: rubber, the training light, no shadows; b: + CLEVR's lights and shadows; c: + metal; "
+                        "d: + ground colour and camera jitter")
+    p.add_argument("--out", required=True, help="new or empty output folder (all scenes go in the test split)")
+    p.add_argument("--scenes", type=arg_int(1, 100000), default=500)
+    p.add_argument("--seed", type=int, default=0, help="the generator's seed (default 0, as 'data clevr')")
+    p.add_argument("--first-index", type=arg_int(0), default=10000,
+                   help="first scene index (default 10000: the default dataset's first test scene)")
+    p.add_argument("--workers", type=arg_int(1, 64), default=1, help="Blender processes")
+    p.add_argument("--python", help="a Python with bpy (default: $PRISMONET_BLENDER_PYTHON, then .venv-blender)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_blender, outputs=[("out", "new_dir")])
+
+
 def _add_clevr(dsub) -> None:
     from prismonet.files import MAX_SLOTS, arg_float, arg_int
 
@@ -150,6 +180,7 @@ def add_parsers(sub) -> None:
     dsub = data.add_subparsers(dest="data_command", required=True)
     _add_clevr(dsub)
     _add_towers(dsub)
+    _add_blender(dsub)
     sheet = dsub.add_parser("sheet", help="contact-sheet PNG of a dataset's first scenes")
     sheet.add_argument("dataset")
     sheet.add_argument("--out", required=True)

@@ -123,8 +123,6 @@ def generate_clevr(
     """
     from tqdm import tqdm
 
-    from prismonet.data import packed
-
     if len(split) != 3 or any(int(n) < 0 for n in split) or sum(split) <= 0:
         raise ValueError(f"split: expected three non-negative scene counts with a positive sum, got {split}")
     if workers <= 0 or chunk <= 0:
@@ -133,10 +131,6 @@ def generate_clevr(
     out = Path(out)
     check_output_dir(out)
     total = int(sum(split))
-    _remove_stale_partials(out)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     t0 = time.perf_counter()
     previous_term = _sigterm_interrupts()
     try:
@@ -161,16 +155,29 @@ def generate_clevr(
                         arrays[k][a:b] = part[k]
                     bar.update(b - a)
         bar.close()
-        meta = {
-            "format": packed.PACKED_FORMAT,
-            "version": packed.PACKED_VERSION,
-            "generator": "clevr" if cfg.towers is None else "towers",
-            "generator_version": GENERATOR_VERSION,
-            "config": cfg_dict,
-            "seed": seed,
-            "counts": dict(zip(SPLIT_NAMES, map(int, split))),
-            "splits": {},
-        }
+        meta = {"generator": "clevr" if cfg.towers is None else "towers", "generator_version": GENERATOR_VERSION,
+                "config": cfg_dict, "seed": seed}
+        return write_dataset(out, arrays, split, meta, t0)
+    finally:
+        if previous_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous_term)
+
+
+def write_dataset(out: Path, arrays: dict[str, np.ndarray], split: tuple[int, ...], meta: dict, t0: float) -> dict:
+    """Write scenes ``arrays`` as a packed dataset at ``out`` (checked by ``check_output_dir``): the
+    splits take consecutive scenes; ``meta`` gets the format, counts, splits and seconds since ``t0``.
+    Everything goes into a hidden folder beside ``out`` renamed into place at the end."""
+    from prismonet.data import packed
+
+    _remove_stale_partials(out)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        meta = {"format": packed.PACKED_FORMAT, "version": packed.PACKED_VERSION, **meta,
+                "counts": dict(zip(SPLIT_NAMES, map(int, split))), "splits": {}}
         start = 0
         for name, n in zip(SPLIT_NAMES, split):
             meta["splits"][name] = packed.write_split(tmp / name, {k: v[start : start + n] for k, v in arrays.items()})
@@ -184,11 +191,6 @@ def generate_clevr(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    finally:
-        if previous_term is not None:
-            import signal
-
-            signal.signal(signal.SIGTERM, previous_term)
     return meta
 
 

@@ -27,8 +27,15 @@ def mask_comparison_figure(rgb: np.ndarray, gt_instance: np.ndarray, columns: li
         for name, inst in columns:
             n = len(np.unique(inst[i])) - (0 in inst[i])
             tiles.append(_panel(colorize_instances(inst[i]), f"{name} ({n})", PANEL))
-        gap = np.full((tiles[0].shape[0], 4, 3), 255, np.uint8)
-        rows.append(np.concatenate([t for tile in tiles for t in (tile, gap)][:-1], 1))
-    sep = np.full((4, rows[0].shape[1], 3), 255, np.uint8)
-    grid = np.concatenate([r for row in rows for r in (row, sep)][:-1], 0)
-    return write_image(Path(path), grid[..., ::-1])  # RGB -> OpenCV's BGR
+        rows.append(tiles)
+    return write_image(Path(path), panel_grid(rows)[..., ::-1])  # RGB -> OpenCV's BGR
+
+
+def panel_grid(rows: list[list[np.ndarray]], gap: int = 4) -> np.ndarray:
+    """Panels of equal size (``_panel``'s) laid out in rows, with white gaps between them."""
+    lines = []
+    for tiles in rows:
+        g = np.full((tiles[0].shape[0], gap, 3), 255, np.uint8)
+        lines.append(np.concatenate([t for tile in tiles for t in (tile, g)][:-1], 1))
+    sep = np.full((gap, lines[0].shape[1], 3), 255, np.uint8)
+    return np.concatenate([r for line in lines for r in (line, sep)][:-1], 0)

@@ -1,0 +1,43 @@
+"""The photoreal ladder as one image: a row per scene; per rung its input and the instances a model found."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from prismonet.files import write_image
+from prismonet.viz.contact_sheet import colorize_instances
+from prismonet.viz.decomposition import _panel
+from prismonet.viz.mask_comparison import PANEL, panel_grid
+
+
+def _u8(rgb: np.ndarray) -> np.ndarray:
+    return (np.clip(rgb.transpose(1, 2, 0), 0, 1) * 255).round().astype(np.uint8)
+
+
+def ladder_figure(rungs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], path: str | Path) -> Path:
+    """Per rung ``(name, rgb (n, 3, H, W) in [0, 1], true instances (n, H, W), found instances (n, H, W))``.
+    A truth panel precedes a rung whose scenes differ from those before it (the first, and e.g. a rung
+    with camera jitter); each found panel's label carries the count found against the truth."""
+    rows = []
+    for i in range(len(rungs[0][1])):
+        tiles, last = [], None
+        for name, rgb, gt, inst in rungs:
+            n_gt = len(np.unique(gt[i])) - (0 in gt[i])
+            if last is None or not np.array_equal(gt[i], last):
+                tiles.append(_panel(colorize_instances(gt[i]), f"truth ({n_gt})", PANEL))
+                last = gt[i]
+            n = len(np.unique(inst[i])) - (0 in inst[i])
+            tiles += [_panel(_u8(rgb[i]), name, PANEL), _panel(colorize_instances(inst[i]), f"found {n}/{n_gt}", PANEL)]
+        rows.append(tiles)
+    width = max(sum(t.shape[1] for t in r) for r in rows)
+    return write_image(Path(path), panel_grid([_pad(r, width) for r in rows])[..., ::-1])
+
+
+def _pad(tiles: list[np.ndarray], width: int) -> list[np.ndarray]:
+    """Rows may hold different numbers of panels; blank panels fill the short ones."""
+    full = len(tiles)
+    while sum(t.shape[1] for t in tiles) < width and len(tiles) < 4 * full:
+        tiles = tiles + [np.full_like(tiles[0], 255)]
+    return tiles
