@@ -212,6 +212,8 @@ CASES = [
     ("pretrain unknown shapes", ["shapes", "pretrain", "--shapes", "{tmp}/noshapes", "--out", "{tmp}/p"], "unknown shape set"),
     ("unknown model name", ["evaluate", "nosuchmodel", "{good}", "--split", "test"], "shipped models by name"),
     ("baseline figure no run", ["baselines", "figure", "{tmp}/norun", "--data", "{good}", "--out", "{tmp}/f.png"], "no such checkpoint"),
+    ("blender python without bpy", ["data", "blender", "--rung", "a", "--out", "{tmp}/l", "--python", "/bin/true"], "cannot import bpy"),
+    ("blender unknown rung", ["data", "blender", "--rung", "e", "--out", "{tmp}/l"], "invalid choice"),
     ("unknown command", ["bogus"], "invalid choice"),
 ]
 
