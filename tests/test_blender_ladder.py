@@ -9,7 +9,7 @@ import torch
 
 from prismonet.data.blender import RUNGS, BlenderRung, ladder_scenes, random_ground_color
 from prismonet.data.blender_worker import blender_camera, project_blender, srgb_encode
-from prismonet.data.clevr import ClevrConfig, clevr_camera
+from prismonet.data.clevr import ClevrConfig
 from prismonet.geometry.camera import intrinsics_matrix, look_at, project
 
 

@@ -232,3 +232,46 @@ def test_varying_object_counts():
     assert arrays["obj_position"].shape[1] == 4 and set(arrays["obj_count"].tolist()) <= {1, 2, 3, 4}
     for i, n in enumerate(arrays["obj_count"]):
         assert (arrays["obj_shape"][i, n:] == -1).all() and arrays["instance"][i].max() <= n
+
+
+def test_randomized_scenes_draw_camera_ground_and_light_within_their_ranges():
+    import math
+    from dataclasses import replace
+
+    import torch
+
+    from prismonet.data.clevr import ClevrConfig, RandomizeConfig, sample_scene
+
+    r = RandomizeConfig()
+    cfg = ClevrConfig(randomize=r)
+    specs = [sample_scene(np.random.default_rng([5, i]), cfg) for i in range(24)]
+    eyes = np.array([s.camera.T_world_cam[:3, 3].numpy() for s in specs])
+    assert len({tuple(np.round(e, 4)) for e in eyes}) == 24  # a camera per scene
+    d0 = float(np.linalg.norm(cfg.camera_eye))
+    for s in specs:
+        T = s.camera.T_world_cam.double()
+        fwd = T[:3, 2]
+        elev = math.degrees(math.asin(-fwd[2]))  # the camera looks at a point on the ground
+        assert r.camera_elevation_deg[0] - 1e-6 <= elev <= r.camera_elevation_deg[1] + 1e-6
+        target = T[:3, 3] + fwd * (-T[2, 3] / fwd[2])
+        assert abs(target[0]) <= r.look_at_jitter + 1e-6 and abs(target[1]) <= r.look_at_jitter + 1e-6
+        dist = float((T[:3, 3] - target).norm())
+        assert d0 * r.camera_distance[0] - 1e-6 <= dist <= d0 * r.camera_distance[1] + 1e-6
+        g = np.asarray(s.ground_color, float)
+        assert abs(g[0] + g[2] - 2 * g[1]) <= 1.0 and r.ground_gray[0] - 1 <= g[1] <= r.ground_gray[1] + 1
+        direction, ambient, diffuse = s.light
+        assert np.linalg.norm(direction) == pytest.approx(1.0) and r.ambient[0] <= ambient <= r.ambient[1]
+        assert r.brightness[0] - 1e-9 <= ambient + diffuse <= r.brightness[1] + 1e-9
+        # every object centre projects inside the image (the focal length fits the area, scaled down)
+        T_cw = torch.linalg.inv(T)
+        for o in s.objects:
+            x = T_cw[:3, :3] @ torch.tensor(o.position, dtype=torch.float64) + T_cw[:3, 3]
+            uv = (s.camera.K.double() @ x)[:2] / x[2]
+            assert (uv >= -0.5).all() and (uv <= cfg.image_size - 0.5).all()
+    # the scene's own light shades it: the same layout under the config's light renders differently
+    s = specs[0]
+    a = render_scene(s, cfg).rgb
+    b = render_scene(replace(s, light=None), cfg).rgb
+    inst = render_scene(s, cfg).instance
+    assert (a[inst == 0] == np.asarray(s.ground_color, np.uint8)).all()  # the flat ground has the drawn colour
+    assert np.abs(a.astype(int) - b.astype(int))[inst > 0].max() > 5

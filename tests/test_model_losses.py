@@ -1,6 +1,8 @@
 """The scene model and its losses: shapes, ablation switches doing what they claim, schedules."""
 
 
+import math
+
 import pytest
 import torch
 
@@ -168,3 +170,28 @@ def test_mask_from_depth_matches_the_instance_mask(batch):
     assert (fg & ~truth).sum() == 0  # never foreground where there is no object
     seen = (bg[:, 0] < 12.0 - 1e-3)  # ground not clipped: depth can show what stands on it
     assert (fg == truth)[seen].float().mean() > 0.99
+
+
+def test_input_blur_and_noise_ranges(batch):
+    """The encoder input's augmentation (sensor blur and noise): defaults keep the old stream exactly; blur
+    spreads a point by the drawn sigma; the noise std varies per image within the asked range."""
+    from dataclasses import replace
+
+    from prismonet.model.trainer import TrainConfig, make_inputs
+
+    g = lambda: torch.Generator().manual_seed(3)
+    img, _ = make_inputs(batch, TrainConfig(), g())
+    torch.testing.assert_close(img, batch.rgb + torch.randn(batch.rgb.shape, generator=g()) * 0.02, rtol=0, atol=0)
+    point = replace(batch, rgb=torch.zeros_like(batch.rgb))
+    point.rgb[:, :, 32, 32] = 1.0
+    blurred, _ = make_inputs(point, TrainConfig(input_noise=0.0, input_blur=3.0), g())
+    sigma = (torch.rand(len(batch), generator=g()) * 3.0).clamp_min(1e-3).double()  # the draw make_inputs makes
+    k = torch.arange(-9, 10, dtype=torch.float64)  # the 19 taps for input_blur = 3
+    for b in range(len(batch)):  # a separable, normalised Gaussian's peak: (1 / sum_k exp(-k^2 / 2 sigma^2))^2
+        expect = (1.0 / torch.exp(-(k**2) / (2 * sigma[b] ** 2)).sum()) ** 2
+        assert blurred[b, 0, 32, 32].item() == pytest.approx(expect.item(), rel=1e-4)
+        assert blurred[b, 0].sum().item() == pytest.approx(1.0, rel=1e-4)
+    assert (sigma > 0.6).any() and (blurred[:, 0, 32, 32] < 0.5).any()  # some image is blurred for real
+    noisy, _ = make_inputs(replace(batch, rgb=torch.zeros(8, 3, 64, 64)), TrainConfig(input_noise=0.01, input_noise_max=0.05), g())
+    stds = noisy.flatten(1).std(1)
+    assert stds.min() >= 0.009 and stds.max() <= 0.051 and stds.max() - stds.min() > 0.01

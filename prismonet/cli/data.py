@@ -31,12 +31,12 @@ def _scene_split(args) -> tuple[int, int, int]:
 
 
 def cmd_clevr(args) -> int:
-    from prismonet.data.clevr import ClevrConfig
+    from prismonet.data.clevr import ClevrConfig, RandomizeConfig
     from prismonet.data.generate import generate_clevr
 
     cfg = ClevrConfig(num_objects=args.objects, min_objects=args.min_objects, area_half=args.area, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
                       random_height=args.random_height, full_rotation=args.full_rotation, camera_jitter=args.camera_jitter,
-                      shapes=args.shapes, shape_split=args.shape_split)
+                      shapes=args.shapes, shape_split=args.shape_split, randomize=RandomizeConfig() if args.randomize else None)
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
     print(f"wrote {n} scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s ({n / meta['seconds']:.0f} scenes/s)")
@@ -144,6 +144,9 @@ def _add_clevr(dsub) -> None:
     p.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
     p.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
     p.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
+    p.add_argument("--randomize", action="store_true",
+                   help="per scene: ground colour, light direction and ambient level, camera distance, elevation, heading, "
+                        "look-at point and focal length (RandomizeConfig's ranges; for the real-tabletop model)")
     p.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture': "
                                                      "its meshes, in their own colours")
     p.add_argument("--shape-split", choices=("seen", "unseen"), default="seen", help="which models of an imported folder")

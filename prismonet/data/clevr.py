@@ -76,6 +76,45 @@ class TowerConfig:
 
 
 @dataclass(frozen=True)
+class RandomizeConfig:
+    """Per-scene draws of what real photos change (the many-objects issue, item 3): ground colour, light
+    and camera. Every range is sampled uniformly; the layout is sampled as without it, in the world."""
+
+    ground_gray: tuple[float, float] = (70.0, 210.0)
+    """Grey level of the ground (0-255)."""
+    ground_tint: float = 25.0
+    """Warm (red up, blue down) or cool tint of the ground, uniform in +-this."""
+    light_azimuth_deg: tuple[float, float] = (-180.0, 180.0)
+    light_elevation_deg: tuple[float, float] = (25.0, 85.0)
+    ambient: tuple[float, float] = (0.2, 0.6)
+    """Ambient share of the light; the sun's is ``brightness - ambient``."""
+    brightness: tuple[float, float] = (0.8, 1.2)
+    """Ambient + diffuse: the light on a surface facing the sun."""
+    camera_distance: tuple[float, float] = (0.75, 1.0)
+    """Distance from the look-at point, times ``camera_eye``'s (11.3): farther, the objects would pass the
+    depth clip at 12."""
+    camera_elevation_deg: tuple[float, float] = (18.0, 50.0)
+    camera_azimuth_deg: tuple[float, float] = (-45.0, 45.0)
+    """Turn about the world z axis, from ``camera_eye``'s heading."""
+    look_at_jitter: float = 0.3
+    """The camera looks at a point uniform in +-this per ground axis."""
+    focal_scale: tuple[float, float] = (0.8, 1.0)
+    """Times the focal length that fits the placement area (< 1 shows more than the area)."""
+
+    def __post_init__(self) -> None:
+        for name in ("ground_gray", "light_azimuth_deg", "light_elevation_deg", "ambient", "brightness", "camera_distance",
+                     "camera_elevation_deg", "camera_azimuth_deg", "focal_scale"):
+            lo, hi = getattr(self, name)
+            object.__setattr__(self, name, (float(lo), float(hi)))
+            if not lo <= hi:
+                raise ValueError(f"randomize.{name}: expected (low, high) with low <= high, got {(lo, hi)}")
+        if not (0 < self.camera_elevation_deg[0] and self.camera_elevation_deg[1] < 90 and self.camera_distance[0] > 0
+                and self.focal_scale[0] > 0 and self.ambient[0] >= 0 and self.brightness[0] > self.ambient[1] - 1e-9):
+            raise ValueError(f"randomize: elevations in (0, 90) deg, positive distances and focal scales, and brightness "
+                             f">= ambient are required, got {self}")
+
+
+@dataclass(frozen=True)
 class ClevrConfig:
     """Settings of the CLEVR-style generator. Defaults follow the paper's modified Clevr."""
 
@@ -113,6 +152,8 @@ class ClevrConfig:
     camera_eye: tuple[float, float, float] = CLEVR_CAMERA_EYE
     towers: TowerConfig | None = None
     """Block towers instead of scattered objects (``prismonet.data.towers``); see ``BLOCK_TOWERS``."""
+    randomize: RandomizeConfig | None = None
+    """Per-scene ground colour, light and camera (``RandomizeConfig``); None: fixed, as the paper."""
     shapes: str = CLEVR
     """Shape library (``prismonet.shapes.library``): ``"clevr"``, or a folder of imported meshes, whose
     objects keep their own colours."""
@@ -122,6 +163,8 @@ class ClevrConfig:
     def __post_init__(self) -> None:
         if isinstance(self.towers, dict):  # read back from a dataset's meta
             object.__setattr__(self, "towers", TowerConfig(**self.towers))
+        if isinstance(self.randomize, dict):
+            object.__setattr__(self, "randomize", RandomizeConfig(**self.randomize))
         if self.num_objects <= 0:
             raise ValueError(f"num_objects must be positive, got {self.num_objects}")
         if self.min_objects is not None and not 0 <= self.min_objects <= self.num_objects:
@@ -180,6 +223,8 @@ class SceneSpec:
     ground_z: float
     ground_color: tuple[int, int, int]
     seed: tuple[int, ...] = field(default=())
+    light: tuple[tuple[float, float, float], float, float] | None = None
+    """``(direction towards the light, ambient, diffuse)`` of this scene; None: the config's."""
 
 
 BLOCK_TOWERS = ClevrConfig(num_objects=4, min_objects=2, area_half=0.3, scale_range=(0.4, 0.5),
@@ -187,24 +232,47 @@ BLOCK_TOWERS = ClevrConfig(num_objects=4, min_objects=2, area_half=0.3, scale_ra
 """The block-tower setting: one tower of 2 to 4 equal cubes, seen from the front and a little above."""
 
 
-def clevr_camera(cfg: ClevrConfig, eye: tuple[float, float, float] | None = None) -> Camera:
+def clevr_camera(cfg: ClevrConfig, eye: tuple[float, float, float] | None = None,
+                 target: tuple[float, float, float] = (0.0, 0.0, 0.0), focal_scale: float = 1.0) -> Camera:
     """CLEVR's camera pose, with the focal length that makes the placement area fill the image.
 
     The focal length is the largest for which all four corners of the area's square on the
-    ground project inside the image, with the principal point at the image centre.
+    ground project inside the image, with the principal point at the image centre; ``focal_scale``
+    multiplies it. ``eye`` and ``target``: another pose (randomised cameras).
     """
     eye_t = torch.tensor(cfg.camera_eye if eye is None else eye, dtype=torch.float64)
-    T_world_cam = look_at(eye_t, torch.zeros(3, dtype=torch.float64))
+    T_world_cam = look_at(eye_t, torch.tensor(target, dtype=torch.float64))
     T_cam_world = torch.linalg.inv(T_world_cam)
     a = cfg.area_half
     corners = torch.tensor([[a, a, 0.0], [a, -a, 0.0], [-a, a, 0.0], [-a, -a, 0.0]], dtype=torch.float64)
     x_cam = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
     half = cfg.image_size / 2.0
     ratios = (x_cam[:, :2] / x_cam[:, 2:]).abs().max()
-    f = float(half / ratios)
+    f = float(half / ratios) * focal_scale
     c = (cfg.image_size - 1) / 2.0
     K = intrinsics_matrix(f, f, c, c, dtype=torch.float64)
     return Camera(K.float(), T_world_cam.float(), cfg.image_size, cfg.image_size)
+
+
+def sample_conditions(rng: np.random.Generator, cfg: ClevrConfig) -> tuple[Camera, tuple[int, int, int], tuple]:
+    """One scene's randomised camera, ground colour and light (``cfg.randomize``)."""
+    r = cfg.randomize
+    eye0 = np.asarray(cfg.camera_eye, np.float64)
+    dist0 = float(np.linalg.norm(eye0))
+    heading0 = math.atan2(eye0[1], eye0[0])
+    dist = dist0 * rng.uniform(*r.camera_distance)
+    elev = math.radians(rng.uniform(*r.camera_elevation_deg))
+    az = heading0 + math.radians(rng.uniform(*r.camera_azimuth_deg))
+    target = np.array([*rng.uniform(-r.look_at_jitter, r.look_at_jitter, 2), 0.0])
+    eye = target + dist * np.array([math.cos(elev) * math.cos(az), math.cos(elev) * math.sin(az), math.sin(elev)])
+    camera = clevr_camera(cfg, tuple(eye.tolist()), tuple(target.tolist()), float(rng.uniform(*r.focal_scale)))
+    g, t = rng.uniform(*r.ground_gray), rng.uniform(-r.ground_tint, r.ground_tint)
+    ground = tuple(int(np.clip(round(x), 0, 255)) for x in (g + t, g, g - t))
+    la, le = math.radians(rng.uniform(*r.light_azimuth_deg)), math.radians(rng.uniform(*r.light_elevation_deg))
+    direction = (math.cos(le) * math.cos(la), math.cos(le) * math.sin(la), math.sin(le))
+    ambient = float(rng.uniform(*r.ambient))
+    diffuse = float(rng.uniform(*r.brightness)) - ambient
+    return camera, ground, (direction, ambient, max(diffuse, 0.0))  # type: ignore[return-value]
 
 
 def check_placement_feasible(cfg: ClevrConfig) -> None:
@@ -228,7 +296,10 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
     check_placement_feasible(cfg)
     lib = shape_library(cfg.shapes, cfg.shape_split)
     shapes = lib.specs
-    if camera is None or cfg.camera_jitter > 0:
+    light = ground = None
+    if cfg.randomize is not None:
+        camera, ground, light = sample_conditions(rng, cfg)
+    elif camera is None or cfg.camera_jitter > 0:
         eye = np.asarray(cfg.camera_eye) + rng.uniform(-cfg.camera_jitter, cfg.camera_jitter, 3) * (cfg.camera_jitter > 0)
         camera = clevr_camera(cfg, tuple(eye.tolist()))
     three_d = cfg.random_height  # objects may then stack above each other: test balls, not discs
@@ -266,7 +337,7 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
             else:
                 break  # this object did not fit: start the scene again
         if len(objects) == count:
-            return SceneSpec(tuple(objects), camera, cfg.ground_z, cfg.ground_color)
+            return SceneSpec(tuple(objects), camera, cfg.ground_z, cfg.ground_color if ground is None else ground, light=light)
     raise PlacementError(
         f"impossible placement: could not place {cfg.num_objects} non-intersecting objects in "
         f"[-{cfg.area_half}, {cfg.area_half}]^2 after {MAX_SCENE_ATTEMPTS} attempts"

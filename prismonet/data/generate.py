@@ -66,7 +66,7 @@ def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, 
     for j, i in enumerate(range(start, stop)):
         rng = np.random.default_rng([seed, i])
         spec = sample(rng, cfg, camera)
-        if rays is None or cfg.camera_jitter > 0:
+        if rays is None or cfg.camera_jitter > 0 or cfg.randomize is not None:
             rays = world_rays(spec)
         r = render_scene(spec, cfg, rng, nthreads=1, rays=rays)
         out["rgb"][j], out["depth"][j], out["instance"][j] = r.rgb, r.depth, r.instance

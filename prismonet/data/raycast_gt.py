@@ -92,9 +92,10 @@ def render_scene(
     # (in float32, open3d's id for "no hit" is 2^32 - 1; only read ids where fg)
     instance = np.where(fg, geom + 1, 0).astype(np.uint8)
 
-    light = np.asarray(cfg.light_dir, dtype=np.float64)
+    direction, ambient, diffuse = (cfg.light_dir, cfg.ambient, cfg.diffuse) if spec.light is None else spec.light
+    light = np.asarray(direction, dtype=np.float64)
     light = light / np.linalg.norm(light)
-    shade = cfg.ambient + cfg.diffuse * np.clip(normals @ light, 0.0, None)
+    shade = ambient + diffuse * np.clip(normals @ light, 0.0, None)
     rgb = np.broadcast_to(np.asarray(spec.ground_color, dtype=np.float64), (H * W, 3)).copy()
     if fg.any():
         prim = hit["primitive_ids"].numpy().astype(np.int64)

@@ -36,14 +36,15 @@ TABLE_COLUMNS = [
 def check_compatible(model, info: dict, ds, any_camera: bool = False) -> None:
     """Raise ``ValueError`` when the dataset's image size does not match the model, its images or
     depth hold non-finite values, or (unless ``any_camera``) any scene's camera, intrinsics or pose,
-    differs from the one the model was trained with."""
+    differs from the one the model was trained with (a camera-frame model, ``pose_frame = "camera"``, takes
+    any camera)."""
     H, W = ds.arrays["rgb"].shape[1:3]
     s = model.cfg.image_size
     if (H, W) != (s, s):
         raise ValueError(f"dataset images are {W}x{H} but the model expects {s}x{s}")
     if not np.isfinite(ds.arrays["depth"]).all():
         raise ValueError("the dataset's depth holds NaN or infinite values")
-    if any_camera or "camera_K" not in info:
+    if any_camera or "camera_K" not in info or model.cfg.pose_frame == "camera":
         return
     K_train = np.asarray(info["camera_K"], np.float64)
     K_data = np.asarray(ds.arrays["K"], np.float64)  # (N, 3, 3)

@@ -31,6 +31,10 @@ class ModelConfig:
     position_scale: tuple[float, float, float] = (1.5, 1.5, 0.5)
     full_rotation: bool = False
     """Regress an extra rotation axis (the paper's full-6-DoF variant)."""
+    pose_frame: str = "world"
+    """``world``: positions and yaw in the world, as the paper (one training camera); ``camera``: the
+    centre's pixel, its height and the yaw from the camera's heading (``prismonet.model.pose_frame``), for
+    models trained on many cameras."""
     detach_partials: bool = True
     """Feed the partial compositions to the encoder without gradients (cheaper, more stable)."""
     prior: str = "shipped"
@@ -42,6 +46,8 @@ class ModelConfig:
     """> 0: also render soft silhouettes (world units of SDF per unit logit), needed by L_mask."""
 
     def __post_init__(self) -> None:
+        if self.pose_frame not in ("world", "camera"):
+            raise ValueError(f"pose_frame: expected 'world' or 'camera', got {self.pose_frame!r}")
         if self.inputs not in INPUT_MODES:
             raise ValueError(f"inputs: expected one of {INPUT_MODES}, got {self.inputs!r}")
         if self.num_slots <= 0 or self.image_size <= 0 or self.tex_dim <= 0:

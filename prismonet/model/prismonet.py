@@ -15,6 +15,7 @@ from torch import nn
 from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
+from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
@@ -84,8 +85,10 @@ class PriSMONet(nn.Module):
         return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps,
                               far_depth=self.cfg.far_depth, soft_mask_tau=self.cfg.soft_mask_tau)
 
-    def decode_latent(self, raw: torch.Tensor) -> SceneParams:
-        """Split a raw encoder output ``(B, out_dim)`` into one slot's ``SceneParams`` (K = 1)."""
+    def decode_latent(self, raw: torch.Tensor, K: torch.Tensor | None = None, T_world_cam: torch.Tensor | None = None,
+                      ground_z: torch.Tensor | None = None) -> SceneParams:
+        """Split a raw encoder output ``(B, out_dim)`` into one slot's ``SceneParams`` (K = 1). A model with
+        ``pose_frame = "camera"`` needs the cameras and ground heights (``prismonet.model.pose_frame``)."""
         d_sh, d_tex = self.sh_dim, self.cfg.tex_dim
         z_sh, z_tex, pos, cs, s = torch.split(raw[:, : d_sh + d_tex + 6], [d_sh, d_tex, 3, 2, 1], dim=1)
         lo, hi = self.cfg.scale_range
@@ -94,9 +97,19 @@ class PriSMONet(nn.Module):
         cs = cs + torch.tensor([1.0, 0.0], dtype=cs.dtype)
         if axis is not None:
             axis = axis + torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype)
+        if self.cfg.pose_frame == "camera":
+            if K is None or T_world_cam is None or ground_z is None:
+                raise ValueError("a camera-frame model decodes poses with the cameras and ground heights")
+            height = self.pos_offset[2] + self.pos_scale[2] * pos[:, 2]
+            position = centre_from_pixel(pos[:, :2], height, K, T_world_cam, ground_z, self.cfg.image_size, 2 * self.cfg.far_depth)
+            heading = camera_heading(T_world_cam)
+            cs = rotate_about_z(cs, heading)
+            axis = None if axis is None else rotate_about_z(axis[:, 0], heading)[:, None]
+        else:
+            position = self.pos_offset + self.pos_scale * pos
         return SceneParams(
             z_sh=z_sh[:, None], z_tex=z_tex[:, None],
-            position=(self.pos_offset + self.pos_scale * pos)[:, None],
+            position=position[:, None],
             cos_sin=cs[:, None], scale=(lo + (hi - lo) * torch.sigmoid(s))[:, None, 0], axis=axis,
         )
 
@@ -149,7 +162,7 @@ class PriSMONet(nn.Module):
                 if not live.any():
                     break
             pi, pm = (cur_image.detach(), cur_mask.detach()) if self.cfg.detach_partials else (cur_image, cur_mask)
-            params = self.decode_latent(self.encoder(self.encoder_input(image, pi, pm)))
+            params = self.decode_latent(self.encoder(self.encoder_input(image, pi, pm)), K, T_world_cam, ground_z)
             params.active = None if live is None else live[:, None].clone()
             obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
             d, m, c = obj.depth, obj.mask, obj.color[:, 0]  # (B, 1, H, W) x2, (B, 3, H, W)
@@ -169,7 +182,7 @@ class PriSMONet(nn.Module):
             colors.append(c)
             softs.append(obj.soft_mask)
         for _ in range(N - len(slots)):  # slots never decoded: inactive, empty renders
-            slots.append(self._empty_slot(image))
+            slots.append(self._empty_slot(image, K, T_world_cam, ground_z))
             depths.append(torch.full((B, H, W), self.cfg.far_depth, dtype=image.dtype))
             masks.append(torch.zeros(B, H, W, dtype=torch.bool))
             colors.append(torch.zeros(B, 3, H, W, dtype=image.dtype))
@@ -180,9 +193,9 @@ class PriSMONet(nn.Module):
         soft = torch.cat(softs, 1) if softs[0] is not None else None
         return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft)
 
-    def _empty_slot(self, image: torch.Tensor) -> SceneParams:
+    def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""
-        params = self.decode_latent(torch.zeros(image.shape[0], self.out_dim, dtype=image.dtype))
+        params = self.decode_latent(torch.zeros(image.shape[0], self.out_dim, dtype=image.dtype), K, T_world_cam, ground_z)
         params.active = torch.zeros(image.shape[0], 1, dtype=torch.bool)
         return params
 

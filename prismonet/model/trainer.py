@@ -64,6 +64,11 @@ class TrainConfig:
     the first scenes of the split; used with ``loss.w_distill > 0``."""
     input_noise: float = 0.02
     """Std of the Gaussian noise added to input images (the paper adds noise; its level is not given)."""
+    input_noise_max: float = 0.0
+    """> input_noise: each image's noise std is drawn from U(input_noise, input_noise_max) (sensor noise)."""
+    input_blur: float = 0.0
+    """> 0: each input image is blurred by a Gaussian of std U(0, input_blur) pixels (focus, motion); the
+    losses still compare with the sharp image."""
     depth_noise_eta: float = 0.0
     """Noisy-depth ablation: noise with sigma = eta d^2 on the target depth (the paper: 0.001)."""
     depth_clip: float = 12.0
@@ -87,8 +92,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
-        if self.input_noise < 0 or self.depth_noise_eta < 0:
-            raise ValueError("input_noise and depth_noise_eta must be non-negative")
+        if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
+            raise ValueError("input_noise, input_noise_max, input_blur and depth_noise_eta must be non-negative")
         if self.lr_decay_from is not None and not 0 <= self.lr_decay_from < self.steps:
             raise ValueError(f"lr_decay_from must be in [0, steps={self.steps}), got {self.lr_decay_from}")
         if not 0 <= self.lr_final_ratio <= 1:
@@ -199,7 +204,18 @@ def check_dataset_fits(ds, cfg: TrainConfig) -> None:
 
 def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """The noisy input image and the (clipped, optionally noisy) target depth of a batch."""
-    image = batch.rgb + torch.randn(batch.rgb.shape, generator=g) * cfg.input_noise
+    image = batch.rgb
+    B = image.shape[0]
+    if cfg.input_blur > 0:
+        import kornia
+
+        sigma = (torch.rand(B, generator=g, dtype=image.dtype) * cfg.input_blur).clamp_min(1e-3)
+        size = 2 * math.ceil(3 * cfg.input_blur) + 1
+        image = kornia.filters.gaussian_blur2d(image, size, torch.stack([sigma, sigma], 1), border_type="replicate")
+    noise = cfg.input_noise
+    if cfg.input_noise_max > cfg.input_noise:
+        noise = cfg.input_noise + (cfg.input_noise_max - cfg.input_noise) * torch.rand(B, 1, 1, 1, generator=g, dtype=image.dtype)
+    image = image + torch.randn(batch.rgb.shape, generator=g) * noise
     depth = batch.depth.clamp(max=cfg.depth_clip)
     if cfg.depth_noise_eta > 0:
         depth = (depth + torch.randn(depth.shape, generator=g) * cfg.depth_noise_eta * depth**2).clamp(0, cfg.depth_clip)
