@@ -20,7 +20,7 @@ DEFAULT_TARGET = (150, 150, 150)
 def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, calibration: str | Path | None = None,
                    box: tuple[int, int, int, int] | None = None, normalize: str = "auto",
                    gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET,
-                   view=None, metres_per_unit: float | None = None) -> list[dict]:
+                   view=None, metres_per_unit: float | None = None, own_camera: bool = False) -> list[dict]:
     """Prepare photos into ``out`` (folder format, no depth). Returns one record per photo.
 
     Args:
@@ -32,6 +32,9 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         normalize: ``"auto"`` (table colour -> ``target``), ``"none"``, or ``"manual"`` with ``gain``.
         view: ``(Camera, ground_z)`` to rectify to, in model units (default: the CLEVR camera at ``size``).
         metres_per_unit: the world scale; default: derived from the camera distances (``WorldMapping.derive``).
+        own_camera: with a ground pose, keep the photo's own camera instead of rectifying (for camera-frame
+            models, ``pose_frame = "camera"``): the photo is cropped to a square around ``view``'s footprint
+            on the table and resized, and takes the calibrated camera, mapped into the model's world.
     """
     from prismonet.data.folder import FOLDER_FORMAT, FOLDER_VERSION
 
@@ -60,7 +63,9 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     records, first_cam = [], None
     for p in photos:
         img = load_photo(p)
-        if T is not None:
+        if T is not None and own_camera:
+            img, cam, placed = _own_camera(p, img, cal, T, view, size, metres_per_unit)
+        elif T is not None:
             img, cam, placed = _rectified(p, img, cal, T, view, size, metres_per_unit)
         else:
             img, cam, placed = _cropped(p, img, cal, box, size)
@@ -129,6 +134,39 @@ def _rectified(p, img, cal, T, view, size, metres_per_unit):
     if coverage < WARN_COVERAGE:
         warnings.append(f"the photo covers {coverage:.0%} of the model's view of the table; the rest is filled with the table colour")
     return img, cam, {"rectified": True, "world": world.to_dict(), "coverage": coverage, "outline": outline, "warnings": warnings}
+
+
+def _own_camera(p, img, cal, T, view, size, metres_per_unit):
+    """Undistort, crop a square around ``view``'s footprint on the table and resize, keeping the photo's
+    calibrated camera (in the model's world): ``(image, camera, record fields)``."""
+    from prismonet.geometry.camera import Camera
+    from realdata.rectify import rectifying_homography
+    from realdata.world import WorldMapping, camera_warnings
+
+    _check_size(p, cal, img)
+    view_cam, ground_z = view
+    view_cam = view_cam.resized(size, size)
+    K_view, T_view = view_cam.K.double().numpy(), view_cam.T_world_cam.double().numpy()
+    world = WorldMapping.derive(T, T_view, ground_z, metres_per_unit)
+    img = undistort(img, cal.K, cal.dist)
+    T_photo = world.camera_in_model(T)
+    corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [size - 0.5, size - 0.5, 1], [-0.5, size - 0.5, 1]])
+    q = corners @ np.linalg.inv(rectifying_homography(cal.K, T_photo, K_view, T_view, ground_z)).T
+    q = q[:, :2] / q[:, 2:]  # the model view's footprint in photo pixels
+    H, W = img.shape[:2]
+    side = int(min(max(np.ptp(q[:, 0]), np.ptp(q[:, 1])), W, H))
+    cx, cy = q.mean(0)
+    x0 = int(np.clip(round(cx - side / 2), 0, W - side))
+    y0 = int(np.clip(round(cy - side / 2), 0, H - side))
+    cam = Camera(torch.tensor(cal.K, dtype=torch.float32), torch.tensor(T_photo, dtype=torch.float32), H, W)
+    img, cam = crop(img, cam, (x0, y0, side, side))
+    if side < size:
+        raise PhotoError(f"{p}: the crop is {side}x{side} px, smaller than the {size}x{size} model input; "
+                         "use a larger photo (upscaling would invent the detail the model reads)")
+    img, cam = resize(img, cam, size)
+    outline = [[x0 - 0.5, y0 - 0.5], [x0 + side - 0.5, y0 - 0.5], [x0 + side - 0.5, y0 + side - 0.5], [x0 - 0.5, y0 + side - 0.5]]
+    return img, cam, {"own_camera": True, "world": world.to_dict(), "crop_box": [x0, y0, side, side], "outline": outline,
+                      "warnings": camera_warnings(world)}
 
 
 def _color_mapping(img, normalize, gain, target) -> ColorMapping:

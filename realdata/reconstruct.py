@@ -53,8 +53,9 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     net, info = load_model(model, num_slots=objects)
     prepared = out / "prepared"
     train_cam, train_ground = training_camera(net, info)
+    own = net.cfg.pose_frame == "camera"  # a camera-frame model takes the calibrated photo camera as it is
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
-                          view=(train_cam, train_ground), metres_per_unit=metres_per_unit)
+                          view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own)
     ds = SceneDataset(prepared)
     by_name = {Path(r["photo"]).stem: r for r in recs}
     fp = prior_fingerprint(net.prior)
@@ -62,8 +63,10 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     results = []
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
         b = ds.batch([i])  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
-        b.K[:] = train_cam.K
-        b.T_world_cam[:] = train_cam.T_world_cam
+        own_cam = by_name[ds.names[i]].get("own_camera", False)
+        if not own_cam:
+            b.K[:] = train_cam.K
+            b.T_world_cam[:] = train_cam.T_world_cam
         b.ground_z[:] = train_ground
         psnr = {}
 
@@ -89,7 +92,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
                         "objects": _objects(o, keep, rec.get("world")),
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "instance": str(out / f"{name}_instance.png"), "mesh": None if mesh_path is None else str(mesh_path),
-                        "camera": "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
+                        "camera": "the photo's own calibrated camera" if own_cam else
+                        "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
                         else "model's training camera (assumed)", "warnings": rec.get("warnings", []),
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))

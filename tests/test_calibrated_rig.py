@@ -4,6 +4,7 @@ known answer (``realdata.synthetic``)."""
 
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -86,7 +87,7 @@ def test_rectify_is_exact_for_a_camera_with_the_same_centre():
     tex = cv2.GaussianBlur(rng.uniform(0, 1, (40, 40, 3)).astype(np.float32), (0, 0), 1.5)
 
     def view(K, T, h, w, factor=1):  # the ground texture (1 texel = 0.25 units) seen by a camera, by ray casting
-        from prismonet.geometry.camera import Camera, camera_rays
+        from prismonet.geometry.camera import camera_rays
 
         K = K.copy()
         K[:2] *= factor
@@ -214,3 +215,33 @@ def test_rig_objects_found_where_they_are(rig):
         errors += [np.linalg.norm(true[r] - found[c]) for r, c in zip(rows, cols) if cost[r, c] < 0.5]
     print(f"rig: {len(errors)} objects matched, mean position error {np.mean(errors):.3f} model units")
     assert len(errors) >= 8 and np.mean(errors) <= 0.2
+
+
+def test_rig_photos_keep_their_own_camera_for_camera_frame_models(rig, tmp_path):
+    """``own_camera``: the prepared photo's camera (cropped, resized, in model units) sees every true object
+    where the calibrated photo camera (metres) sees it in the photo, carried through the same crop and resize."""
+    from calibration.storage import load_calibration
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model, training_camera
+    from realdata.pipeline import prepare_photos
+
+    out, cfg, truth, summary = rig
+    net, info = load_model("shipped")
+    photos = [str(out / s["photo"]) for s in truth["scenes"]]
+    recs = prepare_photos(photos, tmp_path / "own", 64, out / "ground.yml", view=training_camera(net, info), own_camera=True)
+    cal, T = load_calibration(out / "ground.yml")
+    ds = SceneDataset(tmp_path / "own")
+    for i, (sc, rec) in enumerate(zip(truth["scenes"], recs)):
+        assert rec["own_camera"] and rec["warnings"] == []
+        world = WorldMapping.from_dict(rec["world"])
+        table = np.asarray([o["position_table_m"] for o in sc["objects"]])
+        x_cam = (table - T[:3, 3]) @ T[:3, :3]  # the photo camera (metres)
+        uv = (x_cam @ np.asarray(cal.K).T)[:, :2] / x_cam[:, 2:]
+        x0, y0, side, _ = rec["crop_box"]
+        expect = (uv - [x0, y0] + 0.5) * (64 / side) - 0.5  # through the crop and the resize
+        b = ds.batch([ds.names.index(Path(sc["photo"]).stem)])
+        Tm = b.T_world_cam[0].double().numpy()
+        xm = (world.to_model(table) - Tm[:3, 3]) @ Tm[:3, :3]  # the prepared camera (model units)
+        got = (xm @ b.K[0].double().numpy().T)[:, :2] / xm[:, 2:]
+        assert np.abs(got - expect).max() < 1e-3, (got, expect)
+        assert ((got > 0) & (got < 63)).all()  # the crop around the model's view keeps every object

@@ -18,6 +18,9 @@ SHIPPED_SAMPLES = "samples/clevr3"
 MODELS = {
     "clevr3": SHIPPED_MODEL,
     "clevr3_60k": PREVIOUS_MODEL,
+    "clevr2": "clevr2_model",
+    "clevr4": "clevr4_model",
+    "clevr5": "clevr5_model",
     "clevr1to8": "clevr1to8_model",
     "blocktowers": "blocktowers_model",
 }

@@ -29,6 +29,8 @@ def _warn(recs: list[dict]) -> None:
 def _placed(r: dict) -> str:
     if "world" not in r:
         return f"crop {r['crop_box']}"
+    if r.get("own_camera"):
+        return f"crop {r['crop_box']} with its own camera at {r['world']['metres_per_unit']:.4g} m per model unit ({r['world']['scale_source']})"
     return (f"rectified to the model's view at {r['world']['metres_per_unit']:.4g} m per model unit "
             f"({r['world']['scale_source']}), {r['coverage']:.0%} covered")
 
@@ -40,7 +42,7 @@ def cmd_prepare(args) -> int:
     box, gain = box_and_gain(args)
     model, info = load_model(args.model)
     recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain,
-                          view=training_camera(model, info), metres_per_unit=args.unit)
+                          view=training_camera(model, info), metres_per_unit=args.unit, own_camera=args.own_camera)
     for r in recs:
         g = r["color_mapping"]["gain"]
         print(f"  {r['photo']}: {_placed(r)}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
@@ -106,6 +108,10 @@ def add_parsers(sub) -> None:
     _add_photo_args(rp)
     rp.add_argument("--size", type=arg_int(8, MAX_IMAGE_SIDE), default=64)
     rp.add_argument("--camera", help="calibration YAML (prismonet calibrate)")
+    rp.add_argument("--own-camera", action="store_true",
+                    help="with a ground pose: keep the photo's calibrated camera (crop and resize around the model's view) "
+                         "instead of rectifying to the training view; what camera-frame models take (reconstruct does "
+                         "this by itself for them)")
     rp.set_defaults(func=cmd_prepare, outputs=[("out", "dir")])
 
     rr = rsub.add_parser("reconstruct", help="prepare photos and decompose them: figure, latent scene, mesh and object count each")
