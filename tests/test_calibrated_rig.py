@@ -245,3 +245,27 @@ def test_rig_photos_keep_their_own_camera_for_camera_frame_models(rig, tmp_path)
         got = (xm @ b.K[0].double().numpy().T)[:, :2] / xm[:, 2:]
         assert np.abs(got - expect).max() < 1e-3, (got, expect)
         assert ((got > 0) & (got < 63)).all()  # the crop around the model's view keeps every object
+
+
+def test_reconstruct_hands_a_camera_frame_model_the_photo_camera(rig, tmp_path):
+    """``real reconstruct`` with a camera-frame model (here the shipped weights under ``pose_frame = "camera"``)
+    decodes each photo with its own calibrated camera (the latent scene records the prepared photo camera, not
+    the training camera)."""
+    from dataclasses import replace
+
+    from prismonet.cli import main
+    from prismonet.model.io import load_model, save_model
+    from prismonet.model.prismonet import PriSMONet
+
+    out, cfg, truth, summary = rig
+    net, info = load_model("shipped")
+    cam_net = PriSMONet(replace(net.cfg, pose_frame="camera"))
+    cam_net.load_state_dict(net.state_dict())
+    save_model(cam_net, tmp_path / "cam_model", {k: v for k, v in info.items() if k.startswith("camera") or k == "ground_z"})
+    photos = [str(out / s["photo"]) for s in truth["scenes"][:2]]
+    assert main(["real", "reconstruct", *photos, "--camera", str(out / "ground.yml"), "--model", str(tmp_path / "cam_model"),
+                 "--out", str(tmp_path / "recon"), "--quiet"]) == 0
+    rows = json.loads((tmp_path / "recon" / "summary.json").read_text())
+    assert all(r["camera"] == "the photo's own calibrated camera" and r["prepare"]["own_camera"] and r["finite"] for r in rows)
+    scene = json.loads((tmp_path / "recon" / f"{Path(photos[0]).stem}.json").read_text())
+    assert np.allclose(np.asarray(scene["camera"]["T_world_cam"]), np.asarray(rows[0]["prepare"]["camera"]["T_world_cam"]), atol=1e-5)
