@@ -111,10 +111,11 @@ def _cropped(p, img, cal, box, size):
     return img, cam, {"crop_box": [x0, y0, w, h], "outline": outline}
 
 
-def _rectified(p, img, cal, T, view, size, metres_per_unit):
-    """Undistort and rectify to ``view`` through the table: ``(image, camera, record fields)``."""
-    from realdata.rectify import MIN_COVERAGE, WARN_COVERAGE, rectify, rectifying_homography
-    from realdata.world import WorldMapping, camera_warnings
+def _photo_in_model(p, img, cal, T, view, size, metres_per_unit):
+    """What both calibrated paths share: the undistorted photo, the world map, the photo camera in the model's
+    world, the view's camera, and the view's footprint on the table in photo pixels ``(4, 2)``."""
+    from realdata.rectify import rectifying_homography
+    from realdata.world import WorldMapping
 
     _check_size(p, cal, img)
     cam, ground_z = view
@@ -123,10 +124,20 @@ def _rectified(p, img, cal, T, view, size, metres_per_unit):
     world = WorldMapping.derive(T, T_view, ground_z, metres_per_unit)
     img = undistort(img, cal.K, cal.dist)
     T_photo = world.camera_in_model(T)
-    img, coverage = rectify(img, cal.K, T_photo, K_view, T_view, ground_z, size)
     corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [size - 0.5, size - 0.5, 1], [-0.5, size - 0.5, 1]])
     q = corners @ np.linalg.inv(rectifying_homography(cal.K, T_photo, K_view, T_view, ground_z)).T
-    outline = (q[:, :2] / q[:, 2:]).tolist()  # the view's footprint in (undistorted) photo pixels
+    return img, world, T_photo, cam, ground_z, q[:, :2] / q[:, 2:]
+
+
+def _rectified(p, img, cal, T, view, size, metres_per_unit):
+    """Undistort and rectify to ``view`` through the table: ``(image, camera, record fields)``."""
+    from realdata.rectify import MIN_COVERAGE, WARN_COVERAGE, rectify
+    from realdata.world import camera_warnings
+
+    img, world, T_photo, cam, ground_z, footprint = _photo_in_model(p, img, cal, T, view, size, metres_per_unit)
+    K_view, T_view = cam.K.double().numpy(), cam.T_world_cam.double().numpy()
+    img, coverage = rectify(img, cal.K, T_photo, K_view, T_view, ground_z, size)
+    outline = footprint.tolist()  # the view's footprint in (undistorted) photo pixels
     if coverage < MIN_COVERAGE:
         raise PhotoError(f"{p}: the photo covers {coverage:.0%} of the model's view of the table (at least {MIN_COVERAGE:.0%} needed): "
                          "aim the camera at the objects, or state a smaller --unit")
@@ -140,19 +151,9 @@ def _own_camera(p, img, cal, T, view, size, metres_per_unit):
     """Undistort, crop a square around ``view``'s footprint on the table and resize, keeping the photo's
     calibrated camera (in the model's world): ``(image, camera, record fields)``."""
     from prismonet.geometry.camera import Camera
-    from realdata.rectify import rectifying_homography
-    from realdata.world import WorldMapping, camera_warnings
+    from realdata.world import camera_warnings
 
-    _check_size(p, cal, img)
-    view_cam, ground_z = view
-    view_cam = view_cam.resized(size, size)
-    K_view, T_view = view_cam.K.double().numpy(), view_cam.T_world_cam.double().numpy()
-    world = WorldMapping.derive(T, T_view, ground_z, metres_per_unit)
-    img = undistort(img, cal.K, cal.dist)
-    T_photo = world.camera_in_model(T)
-    corners = np.array([[-0.5, -0.5, 1], [size - 0.5, -0.5, 1], [size - 0.5, size - 0.5, 1], [-0.5, size - 0.5, 1]])
-    q = corners @ np.linalg.inv(rectifying_homography(cal.K, T_photo, K_view, T_view, ground_z)).T
-    q = q[:, :2] / q[:, 2:]  # the model view's footprint in photo pixels
+    img, world, T_photo, _, _, q = _photo_in_model(p, img, cal, T, view, size, metres_per_unit)
     H, W = img.shape[:2]
     side = int(min(max(np.ptp(q[:, 0]), np.ptp(q[:, 1])), W, H))
     cx, cy = q.mean(0)
