@@ -44,6 +44,12 @@ def load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor],
     opt.load_state_dict({"state": state, "param_groups": desc["param_groups"]})
 
 
+def resume_key(config: dict, ignored: tuple[str, ...]) -> dict:
+    """A run's config without the fields that may change when it resumes (``ignored``: e.g. ``steps``,
+    ``threads``): two configs with equal keys train the same run."""
+    return {k: v for k, v in config.items() if k not in ignored}
+
+
 def save_checkpoint(path: str | Path, tensors: dict[str, torch.Tensor], meta: dict) -> None:
     """Atomically write ``tensors`` and ``meta`` (JSON-able) to one safetensors file."""
     from safetensors.torch import save_file

@@ -76,7 +76,7 @@ def train_baseline(cfg: BaselineTrainConfig, run_dir: str | Path, progress: bool
     """Train (or resume) a baseline in ``run_dir``; returns a summary."""
     from tqdm import tqdm
 
-    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, resume_key, save_checkpoint
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.trainer import TrainingError, _defer_stop_signals, _truncate_log
 
@@ -92,10 +92,7 @@ def train_baseline(cfg: BaselineTrainConfig, run_dir: str | Path, progress: bool
     start, elapsed = 0, 0.0
     if ckpt.is_file():
         tensors, meta = load_checkpoint(ckpt)
-        def key(d: dict) -> dict:
-            return {k: v for k, v in d.items() if k not in RESUME_IGNORED}
-
-        if key(meta.get("config", {})) != key(cfg_json):
+        if resume_key(meta.get("config", {}), RESUME_IGNORED) != resume_key(cfg_json, RESUME_IGNORED):
             raise TrainingError(f"{ckpt}: was written with another config; use a new run folder or the same config")
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         load_optimizer(opt, tensors, meta["optimizer"])

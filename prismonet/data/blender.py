@@ -155,17 +155,18 @@ def _run_workers(python: str, jobs: list[Path], bar) -> None:
 def ladder_scenes(cfg: ClevrConfig, rung: BlenderRung, scenes: int, seed: int, first_index: int):
     """The ladder's scenes without their Blender colours: ``(arrays, reference, job_scenes, materials)``.
 
-    ``arrays`` are the packed dataset's arrays with ``rgb`` still empty (depth, instances, cameras and
-    objects from the generator's sampler and ground-truth raycaster, exactly as ``data clevr`` makes
-    scenes ``first_index ..`` for ``seed``); ``reference`` the training renderer's RGB of the same scenes;
+    ``arrays`` are the packed dataset's arrays (depth, instances, cameras and objects from the generator's
+    sampler and ground-truth raycaster, exactly as ``data clevr`` makes scenes ``first_index ..`` for
+    ``seed``; ``rgb`` holds the training renderer's images until Blender's replace them); ``reference`` a
+    copy of those images;
     ``job_scenes`` what the Blender worker needs; ``materials`` each object's material.
     """
+    from prismonet.data.generate import store_scene
     from prismonet.data.raycast_gt import render_scene
     from prismonet.data.scenes import empty_scene_arrays
 
     camera = clevr_camera(cfg)
     arrays = empty_scene_arrays(scenes, cfg.image_size, cfg.image_size, cfg.num_objects)
-    reference = np.zeros_like(arrays["rgb"])
     job_scenes, materials = [], []
     for j in range(scenes):
         i = first_index + j
@@ -177,16 +178,8 @@ def ladder_scenes(cfg: ClevrConfig, rung: BlenderRung, scenes: int, seed: int, f
         mats = ["metal" if extra.random() < rung.metal else "rubber" for _ in spec.objects]
         materials.append(mats)
         job_scenes.append(scene_job(spec, ground, mats))
-        reference[j] = r.rgb
-        arrays["depth"][j], arrays["instance"][j] = r.depth, r.instance
-        arrays["K"][j], arrays["T_world_cam"][j] = spec.camera.K.numpy(), spec.camera.T_world_cam.numpy()
-        arrays["ground_z"][j], arrays["ground_color"][j] = spec.ground_z, ground
-        arrays["obj_count"][j] = len(spec.objects)
-        for k, o in enumerate(spec.objects):
-            arrays["obj_shape"][j, k], arrays["obj_category"][j, k], arrays["obj_color"][j, k] = o.shape_id, o.category_id, o.color_id
-            arrays["obj_scale"][j, k], arrays["obj_position"][j, k] = o.scale, o.position
-            arrays["obj_yaw"][j, k], arrays["obj_axis"][j, k] = o.yaw, o.axis
-    return arrays, reference, job_scenes, materials
+        store_scene(arrays, j, replace(spec, ground_color=ground), r)
+    return arrays, arrays["rgb"].copy(), job_scenes, materials
 
 
 def generate_blender(out: str | Path, rung: str | BlenderRung, cfg: ClevrConfig = ClevrConfig(), scenes: int = 500,

@@ -68,22 +68,26 @@ def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, 
         spec = sample(rng, cfg, camera)
         if rays is None or cfg.camera_jitter > 0 or cfg.randomize is not None:
             rays = world_rays(spec)
-        r = render_scene(spec, cfg, rng, nthreads=1, rays=rays)
-        out["rgb"][j], out["depth"][j], out["instance"][j] = r.rgb, r.depth, r.instance
-        out["K"][j] = spec.camera.K.numpy()
-        out["T_world_cam"][j] = spec.camera.T_world_cam.numpy()
-        out["ground_z"][j] = spec.ground_z
-        out["ground_color"][j] = spec.ground_color
-        out["obj_count"][j] = len(spec.objects)
-        for k, o in enumerate(spec.objects):
-            out["obj_shape"][j, k] = o.shape_id
-            out["obj_category"][j, k] = o.category_id
-            out["obj_color"][j, k] = o.color_id
-            out["obj_scale"][j, k] = o.scale
-            out["obj_position"][j, k] = o.position
-            out["obj_yaw"][j, k] = o.yaw
-            out["obj_axis"][j, k] = o.axis
+        store_scene(out, j, spec, render_scene(spec, cfg, rng, nthreads=1, rays=rays))
     return out
+
+
+def store_scene(out: dict[str, np.ndarray], j: int, spec, rendered) -> None:
+    """Write scene ``j``'s layout (``SceneSpec``) and renders (``RenderedScene``) into the scene arrays."""
+    out["rgb"][j], out["depth"][j], out["instance"][j] = rendered.rgb, rendered.depth, rendered.instance
+    out["K"][j] = spec.camera.K.numpy()
+    out["T_world_cam"][j] = spec.camera.T_world_cam.numpy()
+    out["ground_z"][j] = spec.ground_z
+    out["ground_color"][j] = spec.ground_color
+    out["obj_count"][j] = len(spec.objects)
+    for k, o in enumerate(spec.objects):
+        out["obj_shape"][j, k] = o.shape_id
+        out["obj_category"][j, k] = o.category_id
+        out["obj_color"][j, k] = o.color_id
+        out["obj_scale"][j, k] = o.scale
+        out["obj_position"][j, k] = o.position
+        out["obj_yaw"][j, k] = o.yaw
+        out["obj_axis"][j, k] = o.axis
 
 
 def check_output_dir(out: Path) -> None:

@@ -124,10 +124,6 @@ def learning_rate(cfg: TrainConfig, step: int) -> float:
     return lo + 0.5 * (cfg.lr - lo) * (1.0 + math.cos(math.pi * t))
 
 
-def _resume_key(d: dict) -> dict:
-    return {k: v for k, v in d.items() if k not in RESUME_IGNORED}
-
-
 def _normalised(saved: dict) -> dict:
     """A saved config rebuilt through ``TrainConfig``: fields added since it was written take
     their defaults, so older checkpoints still resume; unknown or invalid ones stay a mismatch."""
@@ -245,7 +241,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     """Train (or resume) a run; returns a summary. ``stop_after``: stop after that step (as a kill would)."""
     from tqdm import tqdm
 
-    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, resume_key, save_checkpoint
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.io import save_model
     from prismonet.model.prismonet import PriSMONet
@@ -285,7 +281,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     start, nonfinite, elapsed = 0, 0, 0.0
     if ckpt.is_file():
         tensors, meta = load_checkpoint(ckpt)
-        if _resume_key(_normalised(meta.get("config", {}))) != _resume_key(cfg_json):
+        if resume_key(_normalised(meta.get("config", {})), RESUME_IGNORED) != resume_key(cfg_json, RESUME_IGNORED):
             raise TrainingError(f"{ckpt}: was written with another config; use a new run folder or the same config")
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         load_optimizer(opt, tensors, meta["optimizer"])

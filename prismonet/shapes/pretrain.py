@@ -99,10 +99,6 @@ RESUME_IGNORED = ("checkpoint_every", "threads")
 """Config fields that do not change the result, so a run may resume with other values."""
 
 
-def _resume_key(cfg_dict: dict) -> dict:
-    return {k: v for k, v in cfg_dict.items() if k not in RESUME_IGNORED}
-
-
 def _lr_factor(cfg: PretrainConfig, epoch: int) -> float:
     t = min(epoch / max(cfg.epochs, 1), 1.0)
     return cfg.lr_final_ratio + (1 - cfg.lr_final_ratio) * 0.5 * (1 + np.cos(np.pi * t))
@@ -128,7 +124,7 @@ def pretrain(
     """
     from tqdm import tqdm
 
-    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, resume_key, save_checkpoint
     from prismonet.shapes.prior import ShapePrior
 
     torch.set_num_threads(cfg.threads)
@@ -157,7 +153,7 @@ def pretrain(
     start_epoch, elapsed = 0, 0.0
     if ckpt_path.is_file():
         tensors, meta = load_checkpoint(ckpt_path)
-        if _resume_key(meta.get("config", {})) != _resume_key(json.loads(json.dumps(asdict(cfg)))) or meta.get("shape_set") != shapes.name:
+        if resume_key(meta.get("config", {}), RESUME_IGNORED) != resume_key(json.loads(json.dumps(asdict(cfg))), RESUME_IGNORED) or meta.get("shape_set") != shapes.name:
             raise ValueError(f"{ckpt_path}: was written with another config or shape set; use a new --out folder")
         decoder.load_state_dict({k[8:]: v for k, v in tensors.items() if k.startswith("decoder.")})
         with torch.no_grad():

@@ -9,11 +9,7 @@ import numpy as np
 from prismonet.files import write_image
 from prismonet.viz.contact_sheet import colorize_instances
 from prismonet.viz.decomposition import _panel
-from prismonet.viz.mask_comparison import PANEL, panel_grid
-
-
-def _u8(rgb: np.ndarray) -> np.ndarray:
-    return (np.clip(rgb.transpose(1, 2, 0), 0, 1) * 255).round().astype(np.uint8)
+from prismonet.viz.mask_comparison import PANEL, chw_to_u8, panel_grid
 
 
 def ladder_figure(rungs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], path: str | Path) -> Path:
@@ -29,15 +25,6 @@ def ladder_figure(rungs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], p
                 tiles.append(_panel(colorize_instances(gt[i]), f"truth ({n_gt})", PANEL))
                 last = gt[i]
             n = len(np.unique(inst[i])) - (0 in inst[i])
-            tiles += [_panel(_u8(rgb[i]), name, PANEL), _panel(colorize_instances(inst[i]), f"found {n}/{n_gt}", PANEL)]
+            tiles += [_panel(chw_to_u8(rgb[i]), name, PANEL), _panel(colorize_instances(inst[i]), f"found {n}/{n_gt}", PANEL)]
         rows.append(tiles)
-    width = max(sum(t.shape[1] for t in r) for r in rows)
-    return write_image(Path(path), panel_grid([_pad(r, width) for r in rows])[..., ::-1])
-
-
-def _pad(tiles: list[np.ndarray], width: int) -> list[np.ndarray]:
-    """Rows may hold different numbers of panels; blank panels fill the short ones."""
-    full = len(tiles)
-    while sum(t.shape[1] for t in tiles) < width and len(tiles) < 4 * full:
-        tiles = tiles + [np.full_like(tiles[0], 255)]
-    return tiles
+    return write_image(Path(path), panel_grid(rows)[..., ::-1])

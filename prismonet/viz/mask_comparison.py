@@ -21,7 +21,7 @@ def mask_comparison_figure(rgb: np.ndarray, gt_instance: np.ndarray, columns: li
     instances in that scene."""
     rows = []
     for i in range(len(rgb)):
-        image = (np.clip(rgb[i].transpose(1, 2, 0), 0, 1) * 255).round().astype(np.uint8)
+        image = chw_to_u8(rgb[i])
         n_gt = len(np.unique(gt_instance[i])) - (0 in gt_instance[i])
         tiles = [_panel(image, "input", PANEL), _panel(colorize_instances(gt_instance[i]), f"truth ({n_gt})", PANEL)]
         for name, inst in columns:
@@ -31,8 +31,16 @@ def mask_comparison_figure(rgb: np.ndarray, gt_instance: np.ndarray, columns: li
     return write_image(Path(path), panel_grid(rows)[..., ::-1])  # RGB -> OpenCV's BGR
 
 
+def chw_to_u8(rgb: np.ndarray) -> np.ndarray:
+    """An image ``(3, H, W)`` in [0, 1] as ``(H, W, 3)`` uint8."""
+    return (np.clip(rgb.transpose(1, 2, 0), 0, 1) * 255).round().astype(np.uint8)
+
+
 def panel_grid(rows: list[list[np.ndarray]], gap: int = 4) -> np.ndarray:
-    """Panels of equal size (``_panel``'s) laid out in rows, with white gaps between them."""
+    """Panels of equal size (``_panel``'s) laid out in rows, with white gaps between them; shorter rows
+    are filled with blank panels."""
+    n = max(len(tiles) for tiles in rows)
+    rows = [tiles + [np.full_like(tiles[0], 255)] * (n - len(tiles)) for tiles in rows]
     lines = []
     for tiles in rows:
         g = np.full((tiles[0].shape[0], gap, 3), 255, np.uint8)
