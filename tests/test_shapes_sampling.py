@@ -44,8 +44,48 @@ def test_winding_number_signs_survive_a_hole():
     exact = box_sdf(p, (1, 1, 1))
     clear = (np.abs(exact) > 0.05) & (p[:, 2] < 0.9)  # away from the surface and the hole
     assert np.all((w[clear] > 0.5) == (exact[clear] < 0))
-    sd = signed_distance(v, open_f, p)  # detects the hole and uses the winding number
+    sd = signed_distance(v, open_f, p, inside="winding")  # detects the hole and uses the winding number
     assert np.all(np.sign(sd[clear]) == np.sign(exact[clear]))
+
+
+def test_visibility_vote_needs_no_face_orientation():
+    """A closed cube with half its faces turned inwards (as imported models often have them) plus a small
+    hole: the winding number goes wrong, the visibility vote stays exact away from the surface."""
+    from prismonet.shapes.sdf_samples import inside_mesh
+
+    v, f = shape_mesh(18)
+    flipped = f.copy()
+    flipped[::2] = flipped[::2, ::-1]  # one triangle of every face turned inwards
+    # a crack: split one bottom triangle at a point near its edge ab and drop the sliver [a, b, m]
+    bottom = int(np.where(v[f].mean(1)[:, 2] < -0.99)[0][0])
+    a, b, c = flipped[bottom]
+    mid = (v[a] + v[b]) / 2
+    v2 = np.vstack([v, mid + 0.02 * (v[c] - mid)])
+    m = len(v)
+    holed = np.vstack([np.delete(flipped, bottom, axis=0), [[b, c, m], [c, a, m]]])  # [a, b, m] is missing
+    assert not trimesh.Trimesh(v2, holed).is_watertight
+    p = np.random.default_rng(3).uniform(-1.6, 1.6, (3000, 3))
+    exact = box_sdf(p, (1, 1, 1))
+    clear = np.abs(exact) > 0.1
+    vote = inside_mesh(v2, holed, p[clear])
+    assert np.array_equal(vote, exact[clear] < 0)
+    assert not np.array_equal(inside_mesh(v2, holed, p[clear], inside="winding"), exact[clear] < 0)
+
+
+def test_visibility_vote_empties_a_container():
+    """A cube without its top is a box: from its middle 1/6 of all directions leave through the opening
+    (outside, as a render sees into it), from near its bottom ~7 % do (below ESCAPE_INSIDE = 0.1: inside)."""
+    from prismonet.shapes.sdf_samples import ESCAPE_INSIDE, _scene, escape_fraction
+
+    v, f = shape_mesh(18)
+    open_f = np.delete(f, np.where(v[f].mean(1)[:, 2] > 0.99)[0], axis=0)
+    p = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3], [0.0, 0.0, -0.9], [0.0, 0.0, 1.5], [3.0, 0.0, 0.0]])
+    # solid angle of the opening (a square of half-side 1 at height h above the point): 4 asin(1 / (1 + h^2))
+    h = 1.0 - p[:3, 2]
+    analytic = 4 * np.arcsin(1 / (1 + h**2)) / (4 * np.pi)
+    e = escape_fraction(_scene(v, open_f), p)
+    assert np.allclose(e[:3], analytic, atol=0.03)  # 64 directions: a share within 2 rays
+    assert list(e < ESCAPE_INSIDE) == [False, False, True, False, False]
 
 
 def test_normalisation_bounds():

@@ -27,6 +27,19 @@ MODELS = {
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
 
+PRIORS = {
+    "clevr": "clevr_prior",
+    "cars": "cars_prior",
+}
+"""Shape priors by name (``ModelConfig.prior``, ``load_prior(NAME)``); ``"shipped"`` is ``"clevr"``."""
+
+
+def named_prior(name: str) -> Path | None:
+    """The stem of the shipped prior called ``name``, or ``None``."""
+    stem = PRIORS.get("clevr" if name == "shipped" else name)
+    return asset_path(stem) if stem is not None and asset_path(stem + ".json").is_file() else None
+
+
 def asset_path(name: str) -> Path:
     """The path of a shipped file or folder inside the installed package."""
     return Path(str(resources.files("prismonet.assets").joinpath(name)))

@@ -44,7 +44,8 @@ def cmd_evaluate(args) -> int:
           f"{cfg.describe()}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
     print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
-          + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else ""))
+          + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")
+          + f"; depth RMSE of the empty ground {results['depth_RMSE_empty']:.3f}")
     print("\nper encoder step:\n" + format_steps(results))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))

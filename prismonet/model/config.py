@@ -38,7 +38,8 @@ class ModelConfig:
     detach_partials: bool = True
     """Feed the partial compositions to the encoder without gradients (cheaper, more stable)."""
     prior: str = "shipped"
-    """Shape prior: ``"shipped"`` (the packaged Clevr prior) or a path stem."""
+    """Shape prior: ``"shipped"`` (the packaged Clevr prior), the name of another packaged prior
+    (``prismonet.assets.PRIORS``, e.g. ``"cars"``) or a path stem."""
     render_samples: int = 12
     render_refine_steps: int = 0
     far_depth: float = 12.0

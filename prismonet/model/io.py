@@ -111,6 +111,52 @@ def load_fitting(model, tensors: dict, where: str) -> None:
     model.load_state_dict(tensors)
 
 
+HEAD = "encoder.head.4"
+"""The object encoder's output layer: rows ``[z_sh, z_tex, position 3, cos/sin 2, scale 1, axis 3?]``."""
+
+
+def _head_rows(model) -> dict[str, range]:
+    d_sh, d_tex = model.sh_dim, model.cfg.tex_dim
+    rows = {"z_sh": range(0, d_sh), "z_tex": range(d_sh, d_sh + d_tex), "pose": range(d_sh + d_tex, d_sh + d_tex + 6)}
+    if model.cfg.full_rotation:
+        rows["axis"] = range(d_sh + d_tex + 6, d_sh + d_tex + 9)
+    return rows
+
+
+def transfer_weights(model, source) -> list[str]:
+    """Start ``model`` from another trained model whose latent sizes, prior or outputs differ (``init_transfer``).
+
+    Every tensor of the same name and shape is copied: the encoders' convolutions and fully connected
+    layers, and the texture field where ``D_tex`` agrees. Of the object encoder's output layer, the rows of
+    the pose (position, cos/sin, scale) and of the rotation axis, where both have one, are copied; so are
+    the texture-latent rows where ``D_tex`` agrees and the shape-latent rows where both use the same prior.
+    The rest keeps its fresh initialisation: a latent of another prior means something else. Returns the
+    names of what was left fresh.
+    """
+    dst, src = model.state_dict(), source.state_dict()
+    fresh = []
+    with torch.no_grad():
+        for name, t in dst.items():
+            if name.startswith(HEAD):
+                continue
+            if name in src and src[name].shape == t.shape:
+                t.copy_(src[name])
+            else:
+                fresh.append(name)
+        rows_dst, rows_src = _head_rows(model), _head_rows(source)
+        same = {"pose": True, "axis": "axis" in rows_src,
+                "z_tex": model.cfg.tex_dim == source.cfg.tex_dim,
+                "z_sh": prior_fingerprint(model.prior) == prior_fingerprint(source.prior)}
+        for key, r in rows_dst.items():
+            if not same[key]:
+                fresh.append(f"{HEAD} ({key} rows)")
+                continue
+            for part in ("weight", "bias"):
+                dst[f"{HEAD}.{part}"][list(r)] = src[f"{HEAD}.{part}"][list(rows_src[key])]
+    model.load_state_dict(dst)
+    return fresh
+
+
 def training_camera(model, info: dict):
     """``(Camera, ground_z)`` the model was trained with: from the checkpoint's record, or for a
     checkpoint without one, the default CLEVR camera at the model's image size."""

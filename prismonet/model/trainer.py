@@ -59,6 +59,10 @@ class TrainConfig:
     init_from: str | None = None
     """A trained model (run folder or ``.safetensors``) whose weights start the run, e.g. to fine-tune a
     3-object model on scenes with 4 or 5 objects (the encoder is shared across slots)."""
+    init_transfer: bool = False
+    """With ``init_from``: start from a model with other latent sizes, prior or outputs (e.g. the Clevr model
+    for a ShapeNet-style setting, or for the full-rotation variant): what fits is copied, the latent outputs
+    start fresh (``prismonet.model.io.transfer_weights``)."""
     distill: str | None = None
     """Folder of self-distillation targets (``prismonet distill``, ``prismonet.model.distill``) for
     the first scenes of the split; used with ``loss.w_distill > 0``."""
@@ -266,9 +270,15 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     model = PriSMONet(cfg.model)
     ckpt = run / "checkpoint.safetensors"
     if cfg.init_from is not None and not ckpt.is_file():
-        from prismonet.model.io import load_fitting, load_model
+        from prismonet.model.io import load_fitting, load_model, transfer_weights
 
-        load_fitting(model, load_model(cfg.init_from)[0].state_dict(), f"init_from {cfg.init_from}")
+        source = load_model(cfg.init_from)[0]
+        if cfg.init_transfer:
+            fresh = transfer_weights(model, source)
+            if rank == 0 and fresh:
+                print(f"init_from {cfg.init_from}: fresh where it does not fit: {', '.join(fresh)}")
+        else:
+            load_fitting(model, source.state_dict(), f"init_from {cfg.init_from}")
     targets = None
     if cfg.distill is not None and cfg.loss.w_distill > 0:
         from prismonet.model.distill import DistillTargets

@@ -51,12 +51,12 @@ def volumetric_iou(occ_a: np.ndarray, occ_b: np.ndarray) -> float:
     return 1.0 if union == 0 else float(np.logical_and(occ_a, occ_b).sum() / union)
 
 
-def mesh_occupancy(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Inside test, the same as the SDF samples' signs: ray parity (3 rays) for a watertight mesh, the
-    generalized winding number for one with holes (ray parity is wrong there: imported furniture)."""
+def mesh_occupancy(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, inside: str = "visibility") -> np.ndarray:
+    """Inside test, the same as the SDF samples' signs (``prismonet.shapes.sdf_samples.inside_mesh``): ray
+    parity for a watertight mesh, the visibility vote (or the winding number) for one with holes."""
     from prismonet.shapes.sdf_samples import inside_mesh
 
-    return inside_mesh(vertices, faces, points)
+    return inside_mesh(vertices, faces, points, inside=inside)
 
 
 @torch.no_grad()

@@ -71,11 +71,15 @@ class ShapePrior:
 
 
 def load_prior(path_stem: str | Path | None = None, frozen: bool = True) -> ShapePrior:
-    """Load a prior from ``<stem>.safetensors`` + ``<stem>.json``; default: the shipped Clevr prior."""
+    """Load a prior from ``<stem>.safetensors`` + ``<stem>.json``, or a shipped one by name
+    (``prismonet.assets.PRIORS``: ``"clevr"``, ``"cars"``, ...); default: the shipped Clevr prior."""
+    from prismonet.assets import named_prior
     from prismonet.checkpoint import load_checkpoint
 
     if path_stem is None:
         stem = Path(str(resources.files("prismonet.assets").joinpath(SHIPPED_PRIOR)))
+    elif named_prior(str(path_stem)) is not None:
+        stem = named_prior(str(path_stem))
     else:
         stem = Path(path_stem)
         if stem.suffix in (".safetensors", ".json"):

@@ -1,8 +1,14 @@
 """SDF samples from meshes: points in the padded cube and near the surface, with signed distances.
 
-Distances are exact (open3d's closest-point query). Signs come from open3d's ray-parity test
-for watertight meshes and from the generalized winding number (Jacobson et al. 2013) otherwise,
-which stays right for meshes with holes: a point is inside where the winding number exceeds 1/2.
+Distances are exact (open3d's closest-point query). Signs come from open3d's ray-parity test for
+watertight meshes. For the others (imported furniture) a visibility vote decides: a point is inside
+when fewer than ``ESCAPE_INSIDE`` of ``VISIBILITY_RAYS`` rays from it, spread evenly over the sphere,
+leave the mesh without hitting a face. It needs no face orientation, which imported models rarely
+have consistent (a car's roof facing inwards makes the generalized winding number negative there and
+the prior learns a hollow shell); gaps between parts leak too few rays to matter, while a container's
+opening (a cup, an open box) leaks enough that its inside is empty, as the renders show it. The
+generalized winding number (Jacobson et al. 2013, ``inside="winding"``) stays for consistently oriented
+meshes with holes.
 """
 
 from __future__ import annotations
@@ -20,6 +26,12 @@ WINDING_CHUNK = 256
 """Query points per block in the winding-number sum (bounds the (Q, F) temporaries, which stay in cache)."""
 PARITY_RAYS = 3
 """Rays per point in open3d's parity test; odd, so that a ray through an edge is outvoted."""
+VISIBILITY_RAYS = 64
+"""Rays per point in the visibility vote (a Fibonacci sphere: even, and aligned with no axis)."""
+ESCAPE_INSIDE = 0.1
+"""A point is inside when fewer than this share of its rays escape. From the middle of a cube with one
+face open, 1/6 of the directions escape (outside); from a tenth of the way above its bottom, ~7 %."""
+INSIDE_TESTS = ("visibility", "winding")
 
 
 @dataclass(frozen=True)
@@ -32,9 +44,16 @@ class SamplingConfig:
     """Share of points uniform in the padded cube. DeepSDF uses 3/50; the paper uses more."""
     surface_sigmas: tuple[float, float] = (0.0707, 0.0224)
     """Std of the Gaussian offsets of near-surface points (DeepSDF's variances 0.005, 0.0005)."""
+    inside: str = "visibility"
+    """Inside test for meshes that are not watertight: ``visibility`` (a vote of escaping rays) or
+    ``winding`` (the generalized winding number, which needs consistently oriented faces)."""
+
+    def __post_init__(self) -> None:
+        if self.inside not in INSIDE_TESTS:
+            raise ValueError(f"sampling.inside: expected one of {INSIDE_TESTS}, got {self.inside!r}")
 
     def key(self) -> str:
-        return f"n{self.num_points}-u{self.uniform_ratio}-s{self.surface_sigmas[0]}-{self.surface_sigmas[1]}"
+        return f"n{self.num_points}-u{self.uniform_ratio}-s{self.surface_sigmas[0]}-{self.surface_sigmas[1]}-{self.inside}"
 
 
 def winding_number(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -87,29 +106,64 @@ def is_watertight(vertices: np.ndarray, faces: np.ndarray) -> bool:
     return bool(trimesh.Trimesh(vertices, faces, process=True).is_watertight)
 
 
-def signed_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, watertight: bool | None = None) -> np.ndarray:
-    """Signed distance ``(Q,)`` from ``points`` to a mesh; negative inside."""
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``(n, 3)`` unit vectors spread evenly over the sphere (the golden-angle spiral)."""
+    i = np.arange(n) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / n)
+    azimuth = np.pi * (1.0 + 5.0**0.5) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1)
+
+
+def escape_fraction(scene, points: np.ndarray, rays: int = VISIBILITY_RAYS, chunk: int = 16384) -> np.ndarray:
+    """``(Q,)`` share of ``rays`` directions from each point that hit no face of the open3d ``scene``."""
+    import open3d as o3d
+
+    d = fibonacci_sphere(rays).astype(np.float32)
+    out = np.empty(len(points))
+    for s in range(0, len(points), chunk):
+        p = np.asarray(points[s : s + chunk], np.float32)
+        r = np.concatenate([np.repeat(p, rays, 0), np.tile(d, (len(p), 1))], 1)
+        t = scene.cast_rays(o3d.core.Tensor(r))["t_hit"].numpy().reshape(len(p), rays)
+        out[s : s + len(p)] = np.isinf(t).mean(1)
+    return out
+
+
+def _scene(vertices: np.ndarray, faces: np.ndarray):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    q = o3d.core.Tensor(np.asarray(points, np.float32))
-    dist = scene.compute_distance(q).numpy().astype(np.float64)
-    return np.where(inside_mesh(vertices, faces, points, watertight, scene), -dist, dist)
+    return scene
 
 
-def inside_mesh(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, watertight: bool | None = None, scene=None) -> np.ndarray:
-    """``(Q,)`` bool: inside the mesh, by open3d's ray parity for a watertight mesh and by the
-    generalized winding number (> 0.5) otherwise, so that meshes with holes get sensible signs."""
+def signed_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, watertight: bool | None = None,
+                    inside: str = "visibility") -> np.ndarray:
+    """Signed distance ``(Q,)`` from ``points`` to a mesh; negative inside (``inside_mesh``)."""
     import open3d as o3d
 
+    scene = _scene(vertices, faces)
+    q = o3d.core.Tensor(np.asarray(points, np.float32))
+    dist = scene.compute_distance(q).numpy().astype(np.float64)
+    return np.where(inside_mesh(vertices, faces, points, watertight, scene, inside), -dist, dist)
+
+
+def inside_mesh(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, watertight: bool | None = None, scene=None,
+                inside: str = "visibility") -> np.ndarray:
+    """``(Q,)`` bool: inside the mesh, by open3d's ray parity for a watertight mesh; otherwise by the
+    visibility vote (fewer than ``ESCAPE_INSIDE`` of the rays escape) or, with ``inside="winding"``,
+    the generalized winding number (> 0.5)."""
+    import open3d as o3d
+
+    if inside not in INSIDE_TESTS:
+        raise ValueError(f"inside: expected one of {INSIDE_TESTS}, got {inside!r}")
     if watertight is None:
         watertight = is_watertight(vertices, faces)
-    if not watertight:
+    if not watertight and inside == "winding":
         return winding_number(vertices, faces, points) > 0.5
     if scene is None:
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
+        scene = _scene(vertices, faces)
+    if not watertight:
+        return escape_fraction(scene, points) < ESCAPE_INSIDE
     return scene.compute_signed_distance(o3d.core.Tensor(np.asarray(points, np.float32)), nsamples=PARITY_RAYS).numpy() < 0
 
 
@@ -129,7 +183,7 @@ def sample_sdf(
     near = np.clip(near, -BOX_HALF, BOX_HALF)
     uniform = rng.uniform(-BOX_HALF, BOX_HALF, size=(n_uniform, 3))
     points = np.concatenate([near, uniform])
-    sdf = signed_distance(v, faces, points)
+    sdf = signed_distance(v, faces, points, inside=cfg.inside)
     return points.astype(np.float32), sdf.astype(np.float32)
 
 

@@ -1,0 +1,196 @@
+"""Shape-prior width against mesh quality and render cost, per ShapeNet-style setting (issue 22, item 3).
+
+    python3 scripts/prior_sweep.py data/furniture/cars data/furniture/tabletop --widths 64,128,256 --out runs/prior_sweep
+    python3 scripts/prior_sweep.py ... --out runs/prior_sweep --table        # only print the table of what is done
+
+For each setting (a folder made by ``prismonet shapes import-furniture``) and each width it pre-trains a
+prior (D_sh = 16, 4 layers, 300 epochs, one thread; ``OUT/SETTING_wW``, resumable: rerun the same command),
+measures it on the setting's seen shapes (Chamfer-L1 at marching-cubes resolution 64 and IoU on a 32^3
+grid, ``quality.json``), and times one render step with it: forward + backward of a depth + image loss
+through ``render_scene`` (the renderer's defaults) for 8 scenes of 3 objects, the generator's layouts with
+the prior's own training codes, so that rays hit that prior's surfaces. The widths of one setting are timed
+interleaved in one process (``--rounds`` rounds of ``--repeats`` steps; medians), so host load falls on
+all of them alike. Results go to ``OUT/sweep.json``; the table is printed as Markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def run_name(setting: str, width: int) -> str:
+    return f"{Path(setting).name}_w{width}"
+
+
+def pretrain_one(setting: str, width: int, out: Path, epochs: int, threads: int) -> dict:
+    from prismonet.shapes.decoder import SDFDecoderConfig
+    from prismonet.shapes.evaluate import evaluate_prior
+    from prismonet.shapes.pretrain import PretrainConfig, pretrain
+
+    run = out / run_name(setting, width)
+    quality = run / "quality.json"
+    if quality.is_file():
+        return json.loads(quality.read_text())
+    cfg = PretrainConfig(decoder=SDFDecoderConfig(latent_dim=16, width=width), epochs=epochs, threads=threads)
+    prior = pretrain(cfg, run, shape_set=setting, cache_dir=out / "sdf_samples")
+    report = evaluate_prior(prior, shape_set=setting, resolution=64, iou_resolution=32)
+    report["train_seconds"] = prior.info["train_seconds"]
+    report["parameters"] = sum(p.numel() for p in prior.decoder.parameters())
+    tmp = quality.with_name(".quality.json.tmp")
+    tmp.write_text(json.dumps(report, indent=2))
+    tmp.replace(quality)
+    return report
+
+
+def render_step_ms(setting: str, widths: list[int], out: Path, rounds: int, repeats: int, threads: int) -> dict[int, float]:
+    """Median ms of one render forward + backward per width, interleaved."""
+    from prismonet.bench.render import make_scenes
+    from prismonet.render import RenderSettings, SceneParams, render_scene
+    from prismonet.shapes.prior import load_prior
+
+    torch.set_num_threads(threads)
+    sc = make_scenes(8, 3, seed=0)
+    B, K = sc.params.scale.shape
+    priors = {w: load_prior(out / run_name(setting, w) / "prior") for w in widths}
+    color = lambda z, x: torch.sigmoid(z[:, :3] + x)
+    settings = RenderSettings()
+
+    def step(prior) -> None:
+        idx = torch.arange(B * K) % len(prior.latents)
+        p = sc.params
+        params = SceneParams(prior.latents[idx].reshape(B, K, -1).clone(), p.z_tex.clone(), p.position.clone(),
+                             p.cos_sin.clone(), p.scale.clone())
+        for t in (params.z_sh, params.position, params.cos_sin, params.scale, params.z_tex):
+            t.requires_grad_(True)
+        sdf = lambda z, x: prior.decoder(z[:, None, :], x)  # the scene model's call: z (R, D), x (R, S, 3)
+        comp, _ = render_scene(sdf, color, params, sc.bg_color, sc.bg_depth, sc.K, sc.T, settings)
+        ((comp.depth - 9.0).abs().mean() + comp.image.square().mean()).backward()
+
+    times: dict[int, list[float]] = {w: [] for w in widths}
+    for prior in priors.values():
+        step(prior)  # warm-up
+    for _ in range(rounds):
+        for w, prior in priors.items():
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                step(prior)
+                times[w].append(1e3 * (time.perf_counter() - t0))
+    return {w: statistics.median(t) for w, t in times.items()}
+
+
+def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: int) -> dict[int, dict]:
+    """What each prior can explain at the scenes' own resolution: the validation scenes of the setting's
+    dataset rendered with their true poses and each object's own training code of the prior; against the
+    ground truth, the foreground IoU, the instance IoU per object (mean) and the depth RMSE on the pixels
+    both call foreground. An upper bound for a scene model that uses this prior."""
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.render import RenderSettings, SceneParams, render_scene
+    from prismonet.render.background import plane_depth
+    from prismonet.shapes.prior import load_prior
+
+    torch.set_num_threads(threads)
+    data = Path("data") / Path(setting).name  # the setting's scenes: prismonet data clevr --shapes SETTING --out data/NAME
+    b = SceneDataset(data, "val").batch(list(range(scenes)))
+    B, K = b.obj_shape.shape
+    H, W = b.depth.shape[-2:]
+    active = torch.arange(K)[None] < b.obj_count[:, None]
+    bg_depth = plane_depth(b.K, b.T_world_cam, H, W, b.ground_z)
+    results = {}
+    for w in widths:
+        prior = load_prior(out / run_name(setting, w) / "prior")
+        z = prior.latents[b.obj_shape.clamp(min=0)]
+        params = SceneParams(z, torch.zeros(B, K, 1), b.obj_position, torch.stack([b.obj_yaw.cos(), b.obj_yaw.sin()], -1),
+                             b.obj_scale, active=active)
+        sdf = lambda zz, x: prior.decoder(zz[:, None, :], x)
+        with torch.no_grad():
+            comp, _ = render_scene(sdf, lambda zz, x: x.new_zeros(len(x), 3), params, torch.zeros(B, 3), bg_depth,
+                                   b.K, b.T_world_cam, RenderSettings(refine_steps=2))
+        pred, gt = comp.instance, b.instance
+        fg_p, fg_g = pred > 0, gt > 0
+        ious = []
+        for j in range(B):
+            for k in range(1, int(b.obj_count[j]) + 1):
+                u = ((pred[j] == k) | (gt[j] == k)).sum().item()
+                if (gt[j] == k).sum() >= 25:
+                    ious.append(((pred[j] == k) & (gt[j] == k)).sum().item() / u)
+        both = fg_p & fg_g
+        err = (comp.depth[:, 0] - b.depth[:, 0])[both]
+        results[w] = {"fg_iou": (both.sum() / (fg_p | fg_g).sum()).item(), "instance_iou": float(np.mean(ious)),
+                      "depth_rmse_fg": err.square().mean().sqrt().item()}
+    return results
+
+
+def table(results: dict) -> str:
+    head = ("| setting | width | parameters | pre-training s (1 thread) | Chamfer-L1 mean / median / max | "
+            "IoU mean / median / min | empty meshes | scenes: fg IoU / object IoU / fg depth RMSE | render step ms (8 × 3 objects, fwd + bwd) | × width 64 |")
+    lines = [head, "|" + "---|" * 10]
+    for setting, by_width in results.items():
+        base = by_width.get("64", {}).get("render_ms")
+        for w, r in sorted(by_width.items(), key=lambda kv: int(kv[0])):
+            rows = r["per_shape"]
+            cd = [x["chamfer_l1"] for x in rows if np.isfinite(x["chamfer_l1"])]
+            iou = [x["iou"] for x in rows]
+            empty = len(rows) - len(cd)
+            ms = r.get("render_ms")
+            ratio = f"{ms / base:.2f}×" if ms and base else "–"
+            fit = (f"{r['fg_iou']:.3f} / {r['instance_iou']:.3f} / {r['depth_rmse_fg']:.3f}" if "fg_iou" in r else "–")
+            lines.append(f"| {Path(setting).name} | {w} | {r['parameters']:,} | {r['train_seconds']:.0f} | "
+                         f"{np.mean(cd):.4f} / {np.median(cd):.4f} / {np.max(cd):.4f} | "
+                         f"{np.mean(iou):.3f} / {np.median(iou):.3f} / {np.min(iou):.3f} | {empty} of {len(rows)} | {fit} | "
+                         f"{ms:.0f} | {ratio} |" if ms else
+                         f"| {Path(setting).name} | {w} | {r['parameters']:,} | {r['train_seconds']:.0f} | "
+                         f"{np.mean(cd):.4f} / {np.median(cd):.4f} / {np.max(cd):.4f} | "
+                         f"{np.mean(iou):.3f} / {np.median(iou):.3f} / {np.min(iou):.3f} | {empty} of {len(rows)} | {fit} | – | – |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("settings", nargs="+", help="folders made by 'prismonet shapes import-furniture'")
+    ap.add_argument("--widths", default="64,128,256")
+    ap.add_argument("--out", default="runs/prior_sweep")
+    ap.add_argument("--epochs", type=int, default=300)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--fit-scenes", type=int, default=64, help="validation scenes of data/SETTING for the scene fit")
+    ap.add_argument("--table", action="store_true", help="print the table of what is done; train nothing")
+    args = ap.parse_args(argv)
+    widths = [int(w) for w in args.widths.split(",")]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary_path = out / "sweep.json"
+    results = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    for setting in args.settings:
+        if not (Path(setting) / "models.json").is_file():
+            print(f"error: {setting} is not a folder made by 'prismonet shapes import-furniture'", file=sys.stderr)
+            return 2
+        by_width = results.setdefault(setting, {})
+        if args.table:
+            continue
+        for w in widths:
+            report = pretrain_one(setting, w, out, args.epochs, args.threads)
+            by_width[str(w)] = {**by_width.get(str(w), {}), **report}
+        if any("render_ms" not in by_width[str(w)] for w in widths):
+            for w, ms in render_step_ms(setting, widths, out, args.rounds, args.repeats, args.threads).items():
+                by_width[str(w)]["render_ms"] = ms
+        if (Path("data") / Path(setting).name / "meta.json").is_file() and any("fg_iou" not in by_width[str(w)] for w in widths):
+            for w, fit in scene_fit(setting, widths, out, args.fit_scenes, args.threads).items():
+                by_width[str(w)].update(fit)
+        tmp = summary_path.with_name(".sweep.json.tmp")
+        tmp.write_text(json.dumps(results, indent=2))
+        tmp.replace(summary_path)
+    print(table({s: r for s, r in results.items() if s in args.settings}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
