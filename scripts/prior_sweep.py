@@ -8,7 +8,7 @@ prior (D_sh = 16, 4 layers, 300 epochs, one thread; ``OUT/SETTING_wW``, resumabl
 measures it on the setting's seen shapes (Chamfer-L1 at marching-cubes resolution 64 and IoU on a 32^3
 grid, ``quality.json``), and times one render step with it: forward + backward of a depth + image loss
 through ``render_scene`` (the renderer's defaults) for 8 scenes of 3 objects, the generator's layouts with
-the prior's own training codes, so that rays hit that prior's surfaces. The widths of one setting are timed
+the prior's own training codes, so that rays hit that prior's surfaces, through the prior's tight box. The widths of one setting are timed
 interleaved in one process (``--rounds`` rounds of ``--repeats`` steps; medians), so host load falls on
 all of them alike. Results go to ``OUT/sweep.json``; the table is printed as Markdown.
 """
@@ -61,7 +61,10 @@ def render_step_ms(setting: str, widths: list[int], out: Path, rounds: int, repe
     B, K = sc.params.scale.shape
     priors = {w: load_prior(out / run_name(setting, w) / "prior") for w in widths}
     color = lambda z, x: torch.sigmoid(z[:, :3] + x)
-    settings = RenderSettings()
+    from prismonet.shapes.normalize import shape_bounds
+    from prismonet.shapes.pretrain import load_shape_set
+
+    settings = RenderSettings(box=shape_bounds(load_shape_set(setting).meshes))  # the prior's bounds, as a model renders
 
     def step(prior) -> None:
         idx = torch.arange(B * K) % len(prior.latents)
@@ -88,9 +91,10 @@ def render_step_ms(setting: str, widths: list[int], out: Path, rounds: int, repe
 
 def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: int) -> dict[int, dict]:
     """What each prior can explain at the scenes' own resolution: the validation scenes of the setting's
-    dataset rendered with their true poses and each object's own training code of the prior; against the
-    ground truth, the foreground IoU, the instance IoU per object (mean) and the depth RMSE on the pixels
-    both call foreground. An upper bound for a scene model that uses this prior."""
+    dataset rendered with their true poses and each object's own training code of the prior (12 samples
+    per ray and 2 bisection steps, through the padded cube and through the prior's tight bounds); against
+    the ground truth, the foreground IoU, the instance IoU per object (mean) and the depth RMSE on the
+    pixels both call foreground. An upper bound for a scene model that uses this prior."""
     from prismonet.data.dataset import SceneDataset
     from prismonet.render import RenderSettings, SceneParams, render_scene
     from prismonet.render.background import plane_depth
@@ -103,16 +107,21 @@ def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: 
     H, W = b.depth.shape[-2:]
     active = torch.arange(K)[None] < b.obj_count[:, None]
     bg_depth = plane_depth(b.K, b.T_world_cam, H, W, b.ground_z)
+    from prismonet.shapes.normalize import shape_bounds
+    from prismonet.shapes.pretrain import load_shape_set
+
+    bounds = shape_bounds(load_shape_set(setting).meshes)
     results = {}
-    for w in widths:
+    for w, box in [(w, box) for w in widths for box in ("cube", "bounds")]:
         prior = load_prior(out / run_name(setting, w) / "prior")
+        settings = RenderSettings(refine_steps=2) if box == "cube" else RenderSettings(refine_steps=2, box=bounds)
         z = prior.latents[b.obj_shape.clamp(min=0)]
         params = SceneParams(z, torch.zeros(B, K, 1), b.obj_position, torch.stack([b.obj_yaw.cos(), b.obj_yaw.sin()], -1),
                              b.obj_scale, active=active)
         sdf = lambda zz, x: prior.decoder(zz[:, None, :], x)
         with torch.no_grad():
             comp, _ = render_scene(sdf, lambda zz, x: x.new_zeros(len(x), 3), params, torch.zeros(B, 3), bg_depth,
-                                   b.K, b.T_world_cam, RenderSettings(refine_steps=2))
+                                   b.K, b.T_world_cam, settings)
         pred, gt = comp.instance, b.instance
         fg_p, fg_g = pred > 0, gt > 0
         ious = []
@@ -123,25 +132,29 @@ def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: 
                     ious.append(((pred[j] == k) & (gt[j] == k)).sum().item() / u)
         both = fg_p & fg_g
         err = (comp.depth[:, 0] - b.depth[:, 0])[both]
-        results[w] = {"fg_iou": (both.sum() / (fg_p | fg_g).sum()).item(), "instance_iou": float(np.mean(ious)),
-                      "depth_rmse_fg": err.square().mean().sqrt().item()}
+        key = "" if box == "cube" else "_bounds"
+        results.setdefault(w, {}).update({f"fg_iou{key}": (both.sum() / (fg_p | fg_g).sum()).item(),
+                                          f"instance_iou{key}": float(np.mean(ious)), f"depth_rmse_fg{key}": err.square().mean().sqrt().item()})
     return results
 
 
 def table(results: dict) -> str:
     head = ("| setting | width | parameters | pre-training s (1 thread) | Chamfer-L1 mean / median / max | "
-            "IoU mean / median / min | empty meshes | scenes: fg IoU / object IoU / fg depth RMSE | render step ms (8 × 3 objects, fwd + bwd) | × width 64 |")
-    lines = [head, "|" + "---|" * 10]
+            "IoU mean / median / min | empty meshes | scenes, padded cube: fg IoU / object IoU / fg depth RMSE | "
+            "scenes, tight box | render step ms (8 × 3 objects, fwd + bwd, tight box) | × width 64 |")
+    lines = [head, "|" + "---|" * 11]
     for setting, by_width in results.items():
-        base = by_width.get("64", {}).get("render_ms")
+        base = by_width.get("64", {}).get("render_ms_bounds")
         for w, r in sorted(by_width.items(), key=lambda kv: int(kv[0])):
             rows = r["per_shape"]
             cd = [x["chamfer_l1"] for x in rows if np.isfinite(x["chamfer_l1"])]
             iou = [x["iou"] for x in rows]
             empty = len(rows) - len(cd)
-            ms = r.get("render_ms")
+            ms = r.get("render_ms_bounds")
             ratio = f"{ms / base:.2f}×" if ms and base else "–"
             fit = (f"{r['fg_iou']:.3f} / {r['instance_iou']:.3f} / {r['depth_rmse_fg']:.3f}" if "fg_iou" in r else "–")
+            fit += " | " + (f"{r['fg_iou_bounds']:.3f} / {r['instance_iou_bounds']:.3f} / {r['depth_rmse_fg_bounds']:.3f}"
+                            if "fg_iou_bounds" in r else "–")
             lines.append(f"| {Path(setting).name} | {w} | {r['parameters']:,} | {r['train_seconds']:.0f} | "
                          f"{np.mean(cd):.4f} / {np.median(cd):.4f} / {np.max(cd):.4f} | "
                          f"{np.mean(iou):.3f} / {np.median(iou):.3f} / {np.min(iou):.3f} | {empty} of {len(rows)} | {fit} | "
@@ -179,10 +192,10 @@ def main(argv: list[str] | None = None) -> int:
         for w in widths:
             report = pretrain_one(setting, w, out, args.epochs, args.threads)
             by_width[str(w)] = {**by_width.get(str(w), {}), **report}
-        if any("render_ms" not in by_width[str(w)] for w in widths):
+        if any("render_ms_bounds" not in by_width[str(w)] for w in widths):
             for w, ms in render_step_ms(setting, widths, out, args.rounds, args.repeats, args.threads).items():
-                by_width[str(w)]["render_ms"] = ms
-        if (Path("data") / Path(setting).name / "meta.json").is_file() and any("fg_iou" not in by_width[str(w)] for w in widths):
+                by_width[str(w)]["render_ms_bounds"] = ms
+        if (Path("data") / Path(setting).name / "meta.json").is_file() and any("fg_iou_bounds" not in by_width[str(w)] for w in widths):
             for w, fit in scene_fit(setting, widths, out, args.fit_scenes, args.threads).items():
                 by_width[str(w)].update(fit)
         tmp = summary_path.with_name(".sweep.json.tmp")

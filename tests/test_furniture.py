@@ -148,6 +148,12 @@ def test_an_imported_folder_is_a_shape_set_for_the_prior(source, tmp_path):
                          epochs=2, points_per_shape=512)
     prior = pretrain(cfg, tmp_path / "prior", shape_set=shapes, progress=False)
     assert prior.shape_names == ["blendswap-cc-by-1-toy-car"] and prior.info["shape_set"] == "cars:seen"
+    # the renderer's box: the car's extents plus the padding of 0.1 (the Clevr prior's: the padded cube)
+    lo, hi = prior.bounds
+    assert np.allclose(lo, [-1.1, -0.35, -0.6], atol=1e-6) and np.allclose(hi, [1.1, 0.35, 0.6], atol=1e-6)
+    from prismonet.shapes.prior import load_prior
+
+    assert load_prior().bounds == ((-1.1,) * 3, (1.1,) * 3)
 
 
 def test_scenes_of_imported_meshes_keep_their_colours(source, tmp_path):

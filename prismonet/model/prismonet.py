@@ -83,7 +83,7 @@ class PriSMONet(nn.Module):
 
     def render_settings(self) -> RenderSettings:
         return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps,
-                              far_depth=self.cfg.far_depth, soft_mask_tau=self.cfg.soft_mask_tau)
+                              far_depth=self.cfg.far_depth, soft_mask_tau=self.cfg.soft_mask_tau, box=self.prior.bounds)
 
     def decode_latent(self, raw: torch.Tensor, K: torch.Tensor | None = None, T_world_cam: torch.Tensor | None = None,
                       ground_z: torch.Tensor | None = None) -> SceneParams:

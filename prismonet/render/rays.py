@@ -2,7 +2,9 @@
 
 Every shape lives in the object-frame cube ``[-BOX_HALF, BOX_HALF]^3`` (``prismonet.shapes``),
 so each object's pixels are those inside the projection of its posed cube, and each ray's
-samples need only cover the segment of the ray inside the cube.
+samples need only cover the segment of the ray inside the cube. A prior whose shapes fill less of
+it (cars are long and flat) gives a tighter box (``ShapePrior.bounds``): fewer rays, and the same
+samples spread over a shorter segment.
 """
 
 from __future__ import annotations
@@ -20,7 +22,14 @@ EPS_RAY_DIR = 1e-12
 """Ray direction components below this magnitude are replaced by +-EPS_RAY_DIR in the slab test,
 so that an axis-parallel ray gives +-inf slab bounds instead of 0/0 = NaN."""
 
-_CORNERS = torch.tensor([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=torch.float64) * BOX_HALF
+Box = tuple[tuple[float, float, float], tuple[float, float, float]]
+"""An object-frame axis-aligned box ``(lo, hi)``."""
+FULL_BOX: Box = ((-BOX_HALF,) * 3, (BOX_HALF,) * 3)
+
+
+def _corners(box: Box, dtype) -> torch.Tensor:
+    lo, hi = box
+    return torch.tensor([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], dtype=dtype)
 
 
 @dataclass
@@ -44,13 +53,13 @@ class ObjectRays:
         return self.obj.shape[0]
 
 
-def projected_box_rects(T_cam_obj: torch.Tensor, K: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Pixel rectangles ``(N, 4)`` as ``(u0, v0, u1, v1)`` inclusive, covering each posed cube.
+def projected_box_rects(T_cam_obj: torch.Tensor, K: torch.Tensor, height: int, width: int, box: Box = FULL_BOX) -> torch.Tensor:
+    """Pixel rectangles ``(N, 4)`` as ``(u0, v0, u1, v1)`` inclusive, covering each posed box.
 
-    ``T_cam_obj``: ``(N, 4, 4)``; ``K``: ``(N, 3, 3)``. A cube that reaches behind ``NEAR_Z`` gets
-    the whole image (conservative). Off-screen cubes get an empty rectangle (``u1 < u0``).
+    ``T_cam_obj``: ``(N, 4, 4)``; ``K``: ``(N, 3, 3)``. A box that reaches behind ``NEAR_Z`` gets
+    the whole image (conservative). Off-screen boxes get an empty rectangle (``u1 < u0``).
     """
-    c = _CORNERS.to(T_cam_obj.dtype)
+    c = _corners(box, T_cam_obj.dtype)
     x = torch.einsum("nij,cj->nci", T_cam_obj[:, :3, :3], c) + T_cam_obj[:, None, :3, 3]  # (N, 8, 3)
     z = x[..., 2]
     behind = (z < NEAR_Z).any(dim=1)
@@ -70,15 +79,16 @@ def projected_box_rects(T_cam_obj: torch.Tensor, K: torch.Tensor, height: int, w
     return rects.long()
 
 
-def slab_interval(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Ray parameter interval ``[t0, t1]`` of ``o + t d`` inside the cube (object frame), ``(R,)`` each.
+def slab_interval(o: torch.Tensor, d: torch.Tensor, box: Box = FULL_BOX) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ray parameter interval ``[t0, t1]`` of ``o + t d`` inside the box (object frame), ``(R,)`` each.
 
-    Rays that miss the cube get ``t0 > t1``.
+    Rays that miss the box get ``t0 > t1``.
     """
     d_safe = torch.where(d.abs() < EPS_RAY_DIR, torch.where(d < 0, -EPS_RAY_DIR, EPS_RAY_DIR), d)
     inv = 1.0 / d_safe
-    ta = (-BOX_HALF - o) * inv
-    tb = (BOX_HALF - o) * inv
+    lo, hi = (torch.tensor(b, dtype=o.dtype) for b in box)
+    ta = (lo - o) * inv
+    tb = (hi - o) * inv
     t0 = torch.minimum(ta, tb).max(dim=-1).values
     t1 = torch.maximum(ta, tb).min(dim=-1).values
     return t0, t1
@@ -88,6 +98,7 @@ def object_rays(
     T_obj_cam: torch.Tensor, T_cam_obj: torch.Tensor, K: torch.Tensor, active: torch.Tensor, height: int, width: int,
     cull: bool = True,
     interval: str = "ray",
+    box: Box = FULL_BOX,
 ) -> ObjectRays:
     """Rays of every active object, inside its projected box (``cull``) or over the whole image.
 
@@ -98,13 +109,14 @@ def object_rays(
         cull: restrict to the projected box; ``False`` casts every pixel (reference path).
         interval: ``"ray"``: each ray's exact segment inside the box (slab test); ``"object"``:
             the depth range of the object's box corners for every ray (the paper's choice).
+        box: the object-frame box the shapes lie in (default: the padded cube).
     """
     if interval not in ("ray", "object"):
         raise ValueError(f"interval: expected 'ray' or 'object', got {interval!r}")
     N = T_obj_cam.shape[0]
     dtype = T_obj_cam.dtype
     if cull:
-        rects = projected_box_rects(T_cam_obj, K, height, width)
+        rects = projected_box_rects(T_cam_obj, K, height, width, box)
     else:
         rects = torch.tensor([[0, 0, width - 1, height - 1]], dtype=torch.long).expand(N, 4)
     objs, pixs = [], []
@@ -130,9 +142,9 @@ def object_rays(
     o_obj = T_obj_cam[obj, :3, 3]
     d_obj = torch.einsum("rij,rj->ri", A, d_cam)
     if interval == "ray":
-        t0, t1 = slab_interval(o_obj, d_obj)
+        t0, t1 = slab_interval(o_obj, d_obj, box)
     else:
-        c = _CORNERS.to(dtype)
+        c = _corners(box, dtype)
         zc = torch.einsum("nj,cj->nc", T_cam_obj[:, 2, :3], c) + T_cam_obj[:, None, 2, 3]  # (N, 8)
         t0, t1 = zc.min(1).values[obj], zc.max(1).values[obj]
     t0 = t0.clamp_min(NEAR_Z)

@@ -23,7 +23,7 @@ from prismonet.geometry.pose import T_world_obj_from_extrinsics
 from prismonet.geometry.transforms import invert_similarity
 from prismonet.render.composite import Composite, composite, zbuffer
 from prismonet.render.raymarch import SdfFn, find_crossings, interpolate_surface, linear_root
-from prismonet.render.rays import object_rays
+from prismonet.render.rays import FULL_BOX, Box, object_rays
 
 ColorFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``color_fn(z_tex (n, D), x_obj (n, 3)) -> (n, 3)`` RGB at surface points (object frame)."""
@@ -104,6 +104,9 @@ class RenderSettings:
     soft_mask_tau: float = 0.0
     """If > 0, also render differentiable soft silhouettes: 1 on hits, sigmoid(-s f_min / tau) on
     rays that miss, with f_min the least SDF along the ray (world units, tau too). For L_mask."""
+    box: Box = FULL_BOX
+    """Object-frame box ``(lo, hi)`` the shapes lie in: the padded cube, or a prior's tighter
+    ``ShapePrior.bounds``; rays are cast and sampled only inside it."""
 
 
 @dataclass
@@ -158,7 +161,7 @@ def _cast(params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor, heigh
     T_obj_cam, T_cam_obj = _frames(params, T_world_cam)
     Kn = K[:, None].expand(B, Kslots, 3, 3).reshape(B * Kslots, 3, 3)
     rays = object_rays(T_obj_cam.detach(), T_cam_obj.detach(), Kn, _active(params, B, Kslots), height, width,
-                       cull=cull, interval=settings.interval)
+                       cull=cull, interval=settings.interval, box=settings.box)
     return B, Kslots, T_obj_cam, rays, params.z_sh.reshape(B * Kslots, -1)
 
 

@@ -66,3 +66,12 @@ def normalize_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") 
     center = (lo + hi) / 2
     scale = SHAPE_HALF_EXTENT / float((hi - lo).max() / 2)
     return (v - center) * scale, Normalization(tuple(center.tolist()), scale)
+
+
+def shape_bounds(meshes) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The object-frame box ``(lo, hi)`` that holds every normalised mesh of a set with ``PADDING`` to
+    spare, within the padded cube: a prior's ``bounds``, through which the renderer casts rays."""
+    vs = np.concatenate([normalize_mesh(v, f)[0] for v, f in meshes])
+    lo = np.maximum(vs.min(0) - PADDING, -BOX_HALF)
+    hi = np.minimum(vs.max(0) + PADDING, BOX_HALF)
+    return tuple(float(x) for x in lo), tuple(float(x) for x in hi)

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from prismonet.shapes.decoder import SDFDecoder, SDFDecoderConfig
+from prismonet.shapes.normalize import shape_bounds
 from prismonet.shapes.sdf_samples import SamplingConfig, cached_sdf_samples
 
 
@@ -194,7 +195,8 @@ def pretrain(
         if epoch == stop_after_epoch:
             break
     bar.close()
-    info = {"shape_set": shapes.name, "epochs": cfg.epochs, "train_seconds": round(elapsed, 1), "final_loss": loss_value, "config": asdict(cfg)}
+    info = {"shape_set": shapes.name, "epochs": cfg.epochs, "train_seconds": round(elapsed, 1), "final_loss": loss_value, "config": asdict(cfg),
+            "bounds": shape_bounds(meshes)}
     prior = ShapePrior(decoder, codes.detach().clone(), names, cats, insts, info)
     if stop_after_epoch is None or stop_after_epoch >= cfg.epochs - 1:
         prior.save(out / "prior")

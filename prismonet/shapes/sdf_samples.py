@@ -2,13 +2,14 @@
 
 Distances are exact (open3d's closest-point query). Signs come from open3d's ray-parity test for
 watertight meshes. For the others (imported furniture) a visibility vote decides: a point is inside
-when fewer than ``ESCAPE_INSIDE`` of ``VISIBILITY_RAYS`` rays from it, spread evenly over the sphere,
-leave the mesh without hitting a face. It needs no face orientation, which imported models rarely
-have consistent (a car's roof facing inwards makes the generalized winding number negative there and
-the prior learns a hollow shell); gaps between parts leak too few rays to matter, while a container's
-opening (a cup, an open box) leaks enough that its inside is empty, as the renders show it. The
-generalized winding number (Jacobson et al. 2013, ``inside="winding"``) stays for consistently oriented
-meshes with holes.
+when fewer than ``ESCAPE_INSIDE`` of ``VISIBILITY_RAYS`` rays from it, spread evenly over the upper
+hemisphere, leave the mesh without hitting a face (and below its lowest point, under the ground it stands
+on, everything is outside). Upper, because objects stand on the ground and every camera sees them from above: a car without a floor panel is solid from there, while a cup's opening
+leaks enough rays that its inside is empty, as the renders show it; gaps between parts leak too few to
+matter. The vote needs no face orientation, which imported models rarely have consistent (a car's roof
+facing inwards makes the generalized winding number negative there, and the prior learnt hollow shells).
+The generalized winding number (Jacobson et al. 2013, ``inside="winding"``) stays for consistently
+oriented meshes with holes.
 """
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ WINDING_CHUNK = 256
 PARITY_RAYS = 3
 """Rays per point in open3d's parity test; odd, so that a ray through an edge is outvoted."""
 VISIBILITY_RAYS = 64
-"""Rays per point in the visibility vote (a Fibonacci sphere: even, and aligned with no axis)."""
+"""Rays per point in the visibility vote: the upper half of a 128-point Fibonacci sphere (aligned with no axis)."""
 ESCAPE_INSIDE = 0.1
-"""A point is inside when fewer than this share of its rays escape. From the middle of a cube with one
-face open, 1/6 of the directions escape (outside); from a tenth of the way above its bottom, ~7 %."""
+"""A point is inside when fewer than this share of its upward rays escape. In a cube without its top,
+1/3 of them escape from the middle and 14 % from a twentieth of the way above the bottom: it is empty."""
 INSIDE_TESTS = ("visibility", "winding")
 
 
@@ -115,10 +116,12 @@ def fibonacci_sphere(n: int) -> np.ndarray:
 
 
 def escape_fraction(scene, points: np.ndarray, rays: int = VISIBILITY_RAYS, chunk: int = 16384) -> np.ndarray:
-    """``(Q,)`` share of ``rays`` directions from each point that hit no face of the open3d ``scene``."""
+    """``(Q,)`` share of ``rays`` upward directions (z > 0) from each point that hit no face of the open3d ``scene``."""
     import open3d as o3d
 
-    d = fibonacci_sphere(rays).astype(np.float32)
+    d = fibonacci_sphere(2 * rays)
+    d = d[d[:, 2] > 0].astype(np.float32)
+    rays = len(d)
     out = np.empty(len(points))
     for s in range(0, len(points), chunk):
         p = np.asarray(points[s : s + chunk], np.float32)
@@ -162,8 +165,8 @@ def inside_mesh(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, wat
         return winding_number(vertices, faces, points) > 0.5
     if scene is None:
         scene = _scene(vertices, faces)
-    if not watertight:
-        return escape_fraction(scene, points) < ESCAPE_INSIDE
+    if not watertight:  # below the mesh's lowest point is under the ground it stands on: outside
+        return (escape_fraction(scene, points) < ESCAPE_INSIDE) & (np.asarray(points)[:, 2] >= np.asarray(vertices)[:, 2].min())
     return scene.compute_signed_distance(o3d.core.Tensor(np.asarray(points, np.float32)), nsamples=PARITY_RAYS).numpy() < 0
 
 
