@@ -210,3 +210,21 @@ def test_nograd_path_is_the_same_function(skip):
         dec_mod.INPLACE_NOGRAD = True
     with torch.no_grad():
         assert torch.allclose(off, phi(cases[0][1].double(), cases[0][2].double()), rtol=0, atol=1e-12)
+
+
+def test_the_cars_prior_ships_with_its_sources_and_box():
+    """Priors load by name (prismonet.assets.PRIORS); the cars prior has D_sh = 16, one code per seen car,
+    a box tighter than the padded cube, and every mesh it learnt is attributed."""
+    from prismonet.assets import asset_path
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.prismonet import PriSMONet
+
+    prior = load_prior("cars")
+    assert prior.latents.shape == (8, 16)
+    lo, hi = prior.bounds
+    assert all(-1.1 <= a < -0.5 and 0.5 < b <= 1.1 for a, b in zip(lo, hi))
+    assert (hi[0] - lo[0]) * (hi[2] - lo[2]) < 0.5 * 2.2**2  # long and flat: under half the cube's cross-section
+    sources = asset_path("cars_prior_SOURCES.md").read_text()
+    assert all(name in sources for name in prior.shape_names)
+    model = PriSMONet(ModelConfig(prior="cars", tex_dim=15))
+    assert model.sh_dim == 16 and model.render_settings().box == prior.bounds
