@@ -171,3 +171,20 @@ def test_scenes_of_imported_meshes_keep_their_colours(source, tmp_path):
     cos = (pix / np.linalg.norm(pix, axis=1, keepdims=True)) @ (albedos / np.linalg.norm(albedos, axis=1, keepdims=True)).T
     assert (cos.max(1) > 0.995).all()
     assert (cos.argmax(1) == 0).any() and (cos.argmax(1) == 1).any()
+
+
+def test_rotation_error_up_to_the_settings_pseudo_symmetry(source, tmp_path):
+    """The paper's bracketed rotation errors: cars modulo 180 degrees, chairs modulo 90; Clevr keeps its
+    per-shape symmetries and a dataset without an import none."""
+    import math
+    from types import SimpleNamespace
+
+    from prismonet.evaluation.evaluate import setting_symmetry
+    from prismonet.evaluation.metrics import angle_error
+
+    import_setting("cars", tmp_path / "cars", source, progress=False)
+    ds = SimpleNamespace(meta={"config": {"shapes": str(tmp_path / "cars")}})
+    assert setting_symmetry(ds) == math.pi
+    assert angle_error(math.radians(190), 0.0, setting_symmetry(ds)) == pytest.approx(10.0)
+    assert setting_symmetry(SimpleNamespace(meta={"config": {"shapes": "clevr"}})) is None
+    assert setting_symmetry(SimpleNamespace(meta=None)) is None

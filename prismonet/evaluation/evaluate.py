@@ -16,6 +16,7 @@ from prismonet.evaluation.metrics import (
     image_metrics,
     recurrent_step_metrics,
     scene_detection,
+    SETTING_SYMMETRY,
     symmetry_period,
 )
 
@@ -96,6 +97,19 @@ def dataset_shapes(ds):
         return (), False
 
 
+def setting_symmetry(ds) -> float | None:
+    """The pseudo-symmetry period of an imported setting's scenes (``SETTING_SYMMETRY``, by the setting
+    its ``models.json`` names), or ``None``."""
+    import json
+    from pathlib import Path
+
+    folder = Path(((getattr(ds, "meta", None) or {}).get("config", {}) or {}).get("shapes", "clevr"))
+    try:
+        return SETTING_SYMMETRY.get(json.loads((folder / "models.json").read_text()).get("setting"))
+    except (OSError, ValueError):
+        return None
+
+
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
                    inference=None, loss_cfg=None) -> dict:
@@ -123,6 +137,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     model.eval()
     seconds, decoded = 0.0, 0.0
     specs, clevr_ids = dataset_shapes(ds)
+    pseudo = None if clevr_ids else setting_symmetry(ds)
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
@@ -152,7 +167,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
                 scale_ratio.append(float(p.scale[j, pk - 1] / b.obj_scale[j, gk - 1]))
                 gt_yaw = float(b.obj_yaw[j, gk - 1])
                 rot_err.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, None))
-                period = symmetry_period(int(b.obj_shape[j, gk - 1])) if clevr_ids else None
+                period = symmetry_period(int(b.obj_shape[j, gk - 1])) if clevr_ids else pseudo
                 rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, period))
     cat = np.concatenate
     results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record()}

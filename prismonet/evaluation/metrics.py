@@ -182,6 +182,11 @@ def angle_error(pred: float, gt: float, period: float | None) -> float:
     return math.degrees(min(d, period - d))
 
 
+SETTING_SYMMETRY = {"cars": math.pi, "chairs": math.pi / 2}
+"""Pseudo-symmetry about the vertical axis of the ShapeNet-style settings, for the rotation error "up to
+symmetry": the paper's bracketed figures (a car looks alike turned by 180 degrees, an armchair by 90)."""
+
+
 def symmetry_period(shape_id: int) -> float | None:
     """Rotational symmetry about the vertical axis of a Clevr shape: 0 (any angle), pi/2, pi."""
     from prismonet.shapes.clevr_set import clevr_shapes
