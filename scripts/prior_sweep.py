@@ -89,9 +89,18 @@ def render_step_ms(setting: str, widths: list[int], out: Path, rounds: int, repe
     return {w: statistics.median(t) for w, t in times.items()}
 
 
+def _scenes_of(setting: str) -> Path | None:
+    """``data/NAME`` when it holds scenes of this setting's meshes (``prismonet data clevr --shapes SETTING``)."""
+    meta = Path("data") / Path(setting).name / "meta.json"
+    if not meta.is_file():
+        return None
+    shapes = json.loads(meta.read_text()).get("config", {}).get("shapes")
+    return meta.parent if shapes is not None and Path(shapes).resolve() == Path(setting).resolve() else None
+
+
 def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: int) -> dict[int, dict]:
     """What each prior can explain at the scenes' own resolution: the validation scenes of the setting's
-    dataset rendered with their true poses and each object's own training code of the prior (12 samples
+    dataset (``data/NAME``, made from its meshes) rendered with their true poses and each object's own training code of the prior (12 samples
     per ray and 2 bisection steps, through the padded cube and through the prior's tight bounds); against
     the ground truth, the foreground IoU, the instance IoU per object (mean) and the depth RMSE on the
     pixels both call foreground. An upper bound for a scene model that uses this prior."""
@@ -101,7 +110,7 @@ def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: 
     from prismonet.shapes.prior import load_prior
 
     torch.set_num_threads(threads)
-    data = Path("data") / Path(setting).name  # the setting's scenes: prismonet data clevr --shapes SETTING --out data/NAME
+    data = _scenes_of(setting)
     b = SceneDataset(data, "val").batch(list(range(scenes)))
     B, K = b.obj_shape.shape
     H, W = b.depth.shape[-2:]
@@ -195,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         if any("render_ms_bounds" not in by_width[str(w)] for w in widths):
             for w, ms in render_step_ms(setting, widths, out, args.rounds, args.repeats, args.threads).items():
                 by_width[str(w)]["render_ms_bounds"] = ms
-        if (Path("data") / Path(setting).name / "meta.json").is_file() and any("fg_iou_bounds" not in by_width[str(w)] for w in widths):
+        if _scenes_of(setting) is not None and any("fg_iou_bounds" not in by_width[str(w)] for w in widths):
             for w, fit in scene_fit(setting, widths, out, args.fit_scenes, args.threads).items():
                 by_width[str(w)].update(fit)
         tmp = summary_path.with_name(".sweep.json.tmp")
