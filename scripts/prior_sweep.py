@@ -90,12 +90,15 @@ def render_step_ms(setting: str, widths: list[int], out: Path, rounds: int, repe
 
 
 def _scenes_of(setting: str) -> Path | None:
-    """``data/NAME`` when it holds scenes of this setting's meshes (``prismonet data clevr --shapes SETTING``)."""
-    meta = Path("data") / Path(setting).name / "meta.json"
-    if not meta.is_file():
-        return None
-    shapes = json.loads(meta.read_text()).get("config", {}).get("shapes")
-    return meta.parent if shapes is not None and Path(shapes).resolve() == Path(setting).resolve() else None
+    """``data/NAME`` or ``data/furniture_NAME``, whichever holds scenes of this setting's meshes
+    (``prismonet data clevr --shapes SETTING``); ``data/tabletop`` is the real-tabletop Clevr set."""
+    for folder in (Path("data") / Path(setting).name, Path("data") / f"furniture_{Path(setting).name}"):
+        meta = folder / "meta.json"
+        if meta.is_file():
+            shapes = json.loads(meta.read_text()).get("config", {}).get("shapes")
+            if shapes is not None and Path(shapes).resolve() == Path(setting).resolve():
+                return folder
+    return None
 
 
 def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: int) -> dict[int, dict]:
