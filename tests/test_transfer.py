@@ -57,3 +57,15 @@ def test_transfer_between_equal_layouts_is_a_full_copy():
     assert transfer_weights(dst, src) == []
     for k, v in src.state_dict().items():
         assert torch.equal(dst.state_dict()[k], v), k
+
+
+def test_bad_transfer_and_inside_test_settings_say_what_is_wrong():
+    import pytest
+
+    from prismonet.model.trainer import TrainConfig
+    from prismonet.shapes.sdf_samples import SamplingConfig
+
+    with pytest.raises(ValueError, match="init_transfer needs init_from"):
+        TrainConfig(init_transfer=True)
+    with pytest.raises(ValueError, match="sampling.inside: expected one of"):
+        SamplingConfig(inside="parity")

@@ -94,6 +94,8 @@ class TrainConfig:
         for name in ("log_every", "image_every", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.init_transfer and self.init_from is None:
+            raise ValueError("init_transfer needs init_from (the trained model to start from)")
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
         if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
