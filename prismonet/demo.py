@@ -31,7 +31,7 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     paper's feed-forward decoding)."""
     from tqdm import tqdm
 
-    from prismonet.assets import shipped_samples
+    from prismonet.assets import samples_for
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.inference import InferenceConfig, infer
@@ -44,7 +44,7 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
         raise ValueError(f"--scenes must be positive, got {scenes}")
     out = Path(out)
     net, info = load_model(model)
-    ds = SceneDataset(shipped_samples() if data is None else data, split="test")
+    ds = SceneDataset(samples_for(model) if data is None else data, split="test")
     check_compatible(net, info, ds)
     n = min(scenes, len(ds))
     fp = prior_fingerprint(net.prior)

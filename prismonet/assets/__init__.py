@@ -34,6 +34,20 @@ PRIORS = {
 """Shape priors by name (``ModelConfig.prior``, ``load_prior(NAME)``); ``"shipped"`` is ``"clevr"``."""
 
 
+MODEL_SAMPLES = {
+    "clevr2": "samples/clevr2",
+    "clevr4": "samples/clevr4",
+    "clevr5": "samples/clevr5",
+    "blocktowers": "samples/towers",
+}
+"""The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
+
+
+def samples_for(model: str | Path) -> Path:
+    """The shipped scenes that suit ``model`` (a name of ``MODELS`` or anything else: the 3-object ones)."""
+    return asset_path(MODEL_SAMPLES.get(str(model), SHIPPED_SAMPLES))
+
+
 def named_prior(name: str) -> Path | None:
     """The stem of the shipped prior called ``name``, or ``None``."""
     stem = PRIORS.get("clevr" if name == "shipped" else name)

@@ -110,7 +110,7 @@ def add_parsers(sub) -> None:
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
     demo.add_argument("--scenes", type=arg_int(1), default=8, help="how many of the 16 shipped scenes")
     demo.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
-    demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes")
+    demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes (default: those of --model's setting)")
     demo.add_argument("--quiet", action="store_true")
     add_inference_args(demo, search=3, fit_color=50)
     demo.set_defaults(func=cmd_demo, outputs=[("out", "dir")])
