@@ -23,6 +23,7 @@ MODELS = {
     "clevr5": "clevr5_model",
     "clevr1to8": "clevr1to8_model",
     "blocktowers": "blocktowers_model",
+    "cars": "cars_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -39,6 +40,7 @@ MODEL_SAMPLES = {
     "clevr4": "samples/clevr4",
     "clevr5": "samples/clevr5",
     "blocktowers": "samples/towers",
+    "cars": "samples/cars",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 
