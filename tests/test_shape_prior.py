@@ -187,7 +187,9 @@ def test_nograd_path_is_the_same_function(skip):
     psi = TextureField(4, width=16).double()
     cases = [(phi, torch.randn(7, 1, 5), torch.randn(7, 9, 3)),  # one latent per ray (the root search)
              (phi, torch.randn(7, 9, 5), torch.randn(7, 9, 3)),  # one latent per point
-             (psi, torch.randn(11, 4), torch.randn(11, 3))]      # texture field at hits
+             (phi, torch.randn(0, 1, 5), torch.randn(0, 2, 3)),  # a slot whose rays all miss: no points
+             (psi, torch.randn(11, 4), torch.randn(11, 3)),      # texture field at hits
+             (psi, torch.randn(0, 4), torch.randn(0, 3))]
     for net, z, x in cases:
         z, x = z.double(), x.double()
         with torch.enable_grad():

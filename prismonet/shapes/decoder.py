@@ -116,11 +116,11 @@ class LatentMLP(nn.Module):
                 y = layer.x(x)  # (..., W), a fresh buffer to accumulate into
                 y.add_(layer.z(z))
                 if layer.h is not None:
-                    y.add_(layer.h(h.reshape(*lead, -1)))
+                    y.add_(layer.h(h.reshape(*lead, h.shape[-1])))
                 h = y.relu_().reshape(-1, y.shape[-1])
             else:
                 h = F.linear(h, layer.weight, layer.bias).relu_()
-        return self.out(h).reshape(*lead, -1)
+        return self.out(h).reshape(*lead, self.out.out_features)  # explicit width: lead may hold 0 points
 
 
 class SDFDecoder(LatentMLP):
