@@ -230,3 +230,22 @@ def test_the_cars_prior_ships_with_its_sources_and_box():
     assert all(name in sources for name in prior.shape_names)
     model = PriSMONet(ModelConfig(prior="cars", tex_dim=15))
     assert model.sh_dim == 16 and model.render_settings().box == prior.bounds
+
+
+@pytest.mark.parametrize("name,shapes", [("tableware", 13)])
+def test_the_other_shapenet_style_priors_ship_with_their_sources(name, shapes):
+    """One code per seen mesh at D_sh = 16, a box inside the padded cube, every mesh attributed, and each
+    decodes a surface: the SDF changes sign between the box's centre line and its corners."""
+    from prismonet.assets import asset_path
+
+    prior = load_prior(name)
+    assert prior.latents.shape == (shapes, 16)
+    lo, hi = prior.bounds
+    assert all(-1.1 <= a < 0 < b <= 1.1 for a, b in zip(lo, hi))
+    sources = asset_path(f"{name}_prior_SOURCES.md").read_text()
+    assert all(n in sources for n in prior.shape_names)
+    with torch.no_grad():
+        z = prior.latents[:, None, :]
+        centre = prior.decoder(z, torch.tensor([[0.0, 0.0, -0.5]]).expand(shapes, 1, 3))[..., 0]
+        corner = prior.decoder(z, torch.tensor([[1.05, 1.05, 1.05]]).expand(shapes, 1, 3))[..., 0]
+    assert (corner > 0).all() and (centre < corner).all()

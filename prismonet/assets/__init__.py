@@ -31,8 +31,12 @@ MODELS = {
 PRIORS = {
     "clevr": "clevr_prior",
     "cars": "cars_prior",
+    "chairs": "chairs_prior",
+    "tableware": "tableware_prior",
 }
-"""Shape priors by name (``ModelConfig.prior``, ``load_prior(NAME)``); ``"shipped"`` is ``"clevr"``."""
+"""Shape priors by name (``ModelConfig.prior``, ``load_prior(NAME)``); ``"shipped"`` is ``"clevr"``. ``tableware`` is
+the paper's ShapeNet "tabletop" setting (mugs, bottles, cans; ``data/furniture/tabletop``): the name ``tabletop``
+belongs to the randomised real-tabletop Clevr setting of ``configs/tabletop.json``."""
 
 
 MODEL_SAMPLES = {
