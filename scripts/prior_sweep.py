@@ -101,32 +101,21 @@ def _scenes_of(setting: str) -> Path | None:
     return None
 
 
-def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: int) -> dict[int, dict]:
-    """What each prior can explain at the scenes' own resolution: the validation scenes of the setting's
-    dataset (``data/NAME``, made from its meshes) rendered with their true poses and each object's own training code of the prior (12 samples
-    per ray and 2 bisection steps, through the padded cube and through the prior's tight bounds); against
-    the ground truth, the foreground IoU, the instance IoU per object (mean) and the depth RMSE on the
-    pixels both call foreground. An upper bound for a scene model that uses this prior."""
+def _true_pose_render(setting: str, scenes: int):
+    """The first ``scenes`` validation scenes of the setting's dataset, and a function that renders them
+    with their true poses and each object's own training code of a prior, returning the foreground IoU,
+    the instance IoU of every object of at least 25 pixels, and the depth RMSE where both see foreground."""
     from prismonet.data.dataset import SceneDataset
-    from prismonet.render import RenderSettings, SceneParams, render_scene
+    from prismonet.render import SceneParams, render_scene
     from prismonet.render.background import plane_depth
-    from prismonet.shapes.prior import load_prior
 
-    torch.set_num_threads(threads)
-    data = _scenes_of(setting)
-    b = SceneDataset(data, "val").batch(list(range(scenes)))
+    b = SceneDataset(_scenes_of(setting), "val").batch(list(range(scenes)))
     B, K = b.obj_shape.shape
     H, W = b.depth.shape[-2:]
     active = torch.arange(K)[None] < b.obj_count[:, None]
     bg_depth = plane_depth(b.K, b.T_world_cam, H, W, b.ground_z)
-    from prismonet.shapes.normalize import shape_bounds
-    from prismonet.shapes.pretrain import load_shape_set
 
-    bounds = shape_bounds(load_shape_set(setting).meshes)
-    results = {}
-    for w, box in [(w, box) for w in widths for box in ("cube", "bounds")]:
-        prior = load_prior(out / run_name(setting, w) / "prior")
-        settings = RenderSettings(refine_steps=2) if box == "cube" else RenderSettings(refine_steps=2, box=bounds)
+    def fit(prior, settings) -> tuple[float, np.ndarray, float]:
         z = prior.latents[b.obj_shape.clamp(min=0)]
         params = SceneParams(z, torch.zeros(B, K, 1), b.obj_position, torch.stack([b.obj_yaw.cos(), b.obj_yaw.sin()], -1),
                              b.obj_scale, active=active)
@@ -135,19 +124,60 @@ def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: 
             comp, _ = render_scene(sdf, lambda zz, x: x.new_zeros(len(x), 3), params, torch.zeros(B, 3), bg_depth,
                                    b.K, b.T_world_cam, settings)
         pred, gt = comp.instance, b.instance
+        ious = [((pred[j] == k) & (gt[j] == k)).sum().item() / ((pred[j] == k) | (gt[j] == k)).sum().item()
+                for j in range(B) for k in range(1, int(b.obj_count[j]) + 1) if (gt[j] == k).sum() >= 25]
         fg_p, fg_g = pred > 0, gt > 0
-        ious = []
-        for j in range(B):
-            for k in range(1, int(b.obj_count[j]) + 1):
-                u = ((pred[j] == k) | (gt[j] == k)).sum().item()
-                if (gt[j] == k).sum() >= 25:
-                    ious.append(((pred[j] == k) & (gt[j] == k)).sum().item() / u)
         both = fg_p & fg_g
         err = (comp.depth[:, 0] - b.depth[:, 0])[both]
+        return (both.sum() / (fg_p | fg_g).sum()).item(), np.asarray(ious), err.square().mean().sqrt().item()
+
+    return fit
+
+
+def scene_fit(setting: str, widths: list[int], out: Path, scenes: int, threads: int) -> dict[int, dict]:
+    """What each prior can explain at the scenes' own resolution: the validation scenes of the setting's
+    dataset (``data/NAME``, made from its meshes) rendered with their true poses and each object's own
+    training code of the prior (12 samples per ray and 2 bisection steps, through the padded cube and
+    through the prior's tight bounds); against the ground truth, the foreground IoU, the instance IoU per
+    object (mean) and the depth RMSE on the pixels both call foreground. An upper bound for a scene model
+    that uses this prior."""
+    from prismonet.render import RenderSettings
+    from prismonet.shapes.normalize import shape_bounds
+    from prismonet.shapes.pretrain import load_shape_set
+    from prismonet.shapes.prior import load_prior
+
+    torch.set_num_threads(threads)
+    fit = _true_pose_render(setting, scenes)
+    bounds = shape_bounds(load_shape_set(setting).meshes)
+    results = {}
+    for w, box in [(w, box) for w in widths for box in ("cube", "bounds")]:
+        prior = load_prior(out / run_name(setting, w) / "prior")
+        settings = RenderSettings(refine_steps=2) if box == "cube" else RenderSettings(refine_steps=2, box=bounds)
+        fg, ious, rmse = fit(prior, settings)
         key = "" if box == "cube" else "_bounds"
-        results.setdefault(w, {}).update({f"fg_iou{key}": (both.sum() / (fg_p | fg_g).sum()).item(),
-                                          f"instance_iou{key}": float(np.mean(ious)), f"depth_rmse_fg{key}": err.square().mean().sqrt().item()})
+        results.setdefault(w, {}).update({f"fg_iou{key}": fg, f"instance_iou{key}": float(np.mean(ious)), f"depth_rmse_fg{key}": rmse})
     return results
+
+
+def samples_reach(setting: str, widths: list[int], out: Path, scenes: int, samples: list[int], threads: int) -> str:
+    """How many objects a scene model could find at AP0.5 at most, against the render's samples per ray:
+    the true-pose render of ``scene_fit`` (2 bisection steps, the prior's tight box), the share of objects
+    whose mask reaches IoU 0.5 with the truth, and their mean IoU. A table."""
+    from prismonet.render import RenderSettings
+    from prismonet.shapes.prior import load_prior
+
+    torch.set_num_threads(threads)
+    fit = _true_pose_render(setting, scenes)
+    lines = [f"| {Path(setting).name}: width | " + " | ".join(f"{n} samples: IoU >= 0.5 (mean IoU)" for n in samples) + " |",
+             "|---|" + "---|" * len(samples)]
+    for w in widths:
+        prior = load_prior(out / run_name(setting, w) / "prior")
+        cells = []
+        for n in samples:
+            _, ious, _ = fit(prior, RenderSettings(refine_steps=2, samples=n, box=prior.bounds))
+            cells.append(f"{(ious >= 0.5).mean():.3f} ({ious.mean():.3f})")
+        lines.append(f"| {w} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def table(results: dict) -> str:
@@ -188,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fit-scenes", type=int, default=64, help="validation scenes of data/SETTING for the scene fit")
     ap.add_argument("--table", action="store_true", help="print the table of what is done; train nothing")
+    ap.add_argument("--samples", help="comma-separated samples per ray: print what the true-pose render reaches at each "
+                                      "(the priors must exist); train nothing")
     args = ap.parse_args(argv)
     widths = [int(w) for w in args.widths.split(",")]
     out = Path(args.out)
@@ -201,6 +233,12 @@ def main(argv: list[str] | None = None) -> int:
         by_width = results.setdefault(setting, {})
         if args.table:
             continue
+        if args.samples:
+            if _scenes_of(setting) is None:
+                print(f"error: no scenes of {setting} (data/NAME or data/furniture_NAME)", file=sys.stderr)
+                return 2
+            print(samples_reach(setting, widths, out, args.fit_scenes, [int(n) for n in args.samples.split(",")], args.threads))
+            continue
         for w in widths:
             report = pretrain_one(setting, w, out, args.epochs, args.threads)
             by_width[str(w)] = {**by_width.get(str(w), {}), **report}
@@ -213,7 +251,8 @@ def main(argv: list[str] | None = None) -> int:
         tmp = summary_path.with_name(".sweep.json.tmp")
         tmp.write_text(json.dumps(results, indent=2))
         tmp.replace(summary_path)
-    print(table({s: r for s, r in results.items() if s in args.settings}))
+    if not args.samples:
+        print(table({s: r for s, r in results.items() if s in args.settings}))
     return 0
 
 
