@@ -35,6 +35,11 @@ class ModelConfig:
     """``world``: positions and yaw in the world, as the paper (one training camera); ``camera``: the
     centre's pixel, its height and the yaw from the camera's heading (``prismonet.model.pose_frame``), for
     models trained on many cameras."""
+    presence: bool = False
+    """An explicit presence output per slot (issue 21, the alternative to hiding unused slots): in training
+    the slots are composed as layers of opacity p (``render.composite.presence_composite``) and
+    ``loss.w_presence`` charges each present slot; at inference a slot with p < 0.5 is dropped, and with
+    ``stop`` the encoder stops at a scene's first absent slot."""
     detach_partials: bool = True
     """Feed the partial compositions to the encoder without gradients (cheaper, more stable)."""
     prior: str = "shipped"

@@ -112,7 +112,7 @@ def load_fitting(model, tensors: dict, where: str) -> None:
 
 
 HEAD = "encoder.head.4"
-"""The object encoder's output layer: rows ``[z_sh, z_tex, position 3, cos/sin 2, scale 1, axis 3?]``."""
+"""The object encoder's output layer: rows ``[z_sh, z_tex, position 3, cos/sin 2, scale 1, axis 3?, presence 1?]``."""
 
 
 def _head_rows(model) -> dict[str, range]:
@@ -120,6 +120,8 @@ def _head_rows(model) -> dict[str, range]:
     rows = {"z_sh": range(0, d_sh), "z_tex": range(d_sh, d_sh + d_tex), "pose": range(d_sh + d_tex, d_sh + d_tex + 6)}
     if model.cfg.full_rotation:
         rows["axis"] = range(d_sh + d_tex + 6, d_sh + d_tex + 9)
+    if model.cfg.presence:
+        rows["presence"] = range(model.out_dim - 1, model.out_dim)
     return rows
 
 
@@ -128,7 +130,7 @@ def transfer_weights(model, source) -> list[str]:
 
     Every tensor of the same name and shape is copied: the encoders' convolutions and fully connected
     layers, and the texture field where ``D_tex`` agrees. Of the object encoder's output layer, the rows of
-    the pose (position, cos/sin, scale) and of the rotation axis, where both have one, are copied; so are
+    the pose (position, cos/sin, scale) and of the rotation axis and the presence, where both have one, are copied; so are
     the texture-latent rows where ``D_tex`` agrees and the shape-latent rows where both use the same prior.
     The rest keeps its fresh initialisation: a latent of another prior means something else. Returns the
     names of what was left fresh.
@@ -144,7 +146,7 @@ def transfer_weights(model, source) -> list[str]:
             else:
                 fresh.append(name)
         rows_dst, rows_src = _head_rows(model), _head_rows(source)
-        same = {"pose": True, "axis": "axis" in rows_src,
+        same = {"pose": True, "axis": "axis" in rows_src, "presence": "presence" in rows_src,
                 "z_tex": model.cfg.tex_dim == source.cfg.tex_dim,
                 "z_sh": prior_fingerprint(model.prior) == prior_fingerprint(source.prior)}
         for key, r in rows_dst.items():

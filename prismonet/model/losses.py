@@ -58,12 +58,16 @@ class LossConfig:
     """L_mask's target from the depth image alone: pixels in front of the known ground plane by
     more than ``mask_depth_margin``. No labels: the RGB-D input and the plane already imply it."""
     mask_depth_margin: float = 0.05
+    w_presence: float = 0.0
+    """With ``model.presence``: the cost of a present slot (sum of presences per scene), so that a slot
+    that explains nothing turns itself off. It must stay below what a small object's pixels are worth in
+    L_I, or real objects are dropped too."""
     w_distill: float = 0.0
     """Self-distillation (beyond the paper): weight of the regression onto the test-time fit's
     slots (``prismonet.model.distill``; needs ``TrainConfig.distill``)."""
 
     def __post_init__(self) -> None:
-        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask"):
+        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.sh_steps <= 0 or self.blur_steps <= 0:
@@ -183,6 +187,7 @@ class LossTerms:
     pose: torch.Tensor
     mask: torch.Tensor
     distill: torch.Tensor
+    presence: torch.Tensor
 
     def scalars(self) -> dict[str, float]:
         return {k: float(v.detach()) for k, v in self.__dict__.items()}
@@ -211,7 +216,8 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
         dist = distill_loss(p, out.latents.bg_color, *distill)
     else:
         dist = zero
+    presence = out.presence.sum(1).mean() if getattr(out, "presence", None) is not None else zero
     total = (cfg.w_image * image + cfg.w_depth * depth + cfg.w_ground * ground + shape_weight(cfg, step) * shape
              + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose + cfg.w_mask * mask
-             + cfg.w_distill * dist)
-    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask, dist)
+             + cfg.w_distill * dist + cfg.w_presence * presence)
+    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask, dist, presence)

@@ -20,8 +20,12 @@ from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
 from prismonet.render.background import plane_depth
-from prismonet.render.composite import Composite
+from prismonet.render.composite import Composite, presence_composite
 from prismonet.shapes.prior import ShapePrior, load_prior
+
+
+PRESENCE_INIT_LOGIT = 3.0
+"""A fresh presence output starts every slot present (sigmoid 3 = 0.95), as a model without one."""
 
 
 @dataclass
@@ -45,6 +49,8 @@ class ModelOutput:
     bg_depth: torch.Tensor
     obj_soft_mask: torch.Tensor | None = None
     """``(B, N, H, W)`` differentiable silhouettes when ``cfg.soft_mask_tau > 0``."""
+    presence: torch.Tensor | None = None
+    """``(B, N)`` each slot's presence probability (``cfg.presence``), else ``None``."""
     slot_steps: torch.Tensor | None = None
     """``(B, N)`` the 0-based encoder step that found each slot; ``None``: slot k is step k. Differs
     when slots were selected among more encoder steps (``prismonet.model.select``)."""
@@ -66,8 +72,13 @@ class PriSMONet(nn.Module):
             prior = load_prior(None if cfg.prior == "shipped" else cfg.prior)
         self.__dict__["prior"] = prior.frozen()
         self.sh_dim = prior.decoder.cfg.latent_dim
-        self.out_dim = self.sh_dim + cfg.tex_dim + 3 + 2 + 1 + (3 if cfg.full_rotation else 0)
+        self.out_dim = self.sh_dim + cfg.tex_dim + 3 + 2 + 1 + (3 if cfg.full_rotation else 0) + (1 if cfg.presence else 0)
         self.encoder = ConvEncoder(cfg.in_channels, cfg.channels, cfg.fc, cfg.image_size, self.out_dim)
+        if cfg.presence:  # the last output row: a presence logit that starts at "present" (p = 0.95)
+            head = self.encoder.head[-1]
+            with torch.no_grad():
+                head.weight[-1].zero_()
+                head.bias[-1] = PRESENCE_INIT_LOGIT
         self.bg_encoder = ConvEncoder(3, cfg.bg_channels, (64,), cfg.image_size, 3)
         self.texture = TextureField(cfg.tex_dim, cfg.texture_width, cfg.texture_depth)
         self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
@@ -92,7 +103,7 @@ class PriSMONet(nn.Module):
         d_sh, d_tex = self.sh_dim, self.cfg.tex_dim
         z_sh, z_tex, pos, cs, s = torch.split(raw[:, : d_sh + d_tex + 6], [d_sh, d_tex, 3, 2, 1], dim=1)
         lo, hi = self.cfg.scale_range
-        axis = raw[:, d_sh + d_tex + 6 :][:, None] if self.cfg.full_rotation else None
+        axis = raw[:, d_sh + d_tex + 6 : d_sh + d_tex + 9][:, None] if self.cfg.full_rotation else None
         # (cos, sin) raw outputs start near 0: bias towards (1, 0) so the normalisation is well-posed
         cs = cs + torch.tensor([1.0, 0.0], dtype=cs.dtype)
         if axis is not None:
@@ -112,6 +123,10 @@ class PriSMONet(nn.Module):
             position=position[:, None],
             cos_sin=cs[:, None], scale=(lo + (hi - lo) * torch.sigmoid(s))[:, None, 0], axis=axis,
         )
+
+    def presence_of(self, raw: torch.Tensor) -> torch.Tensor | None:
+        """``(B,)`` the presence probability in a raw encoder output, or ``None`` without ``cfg.presence``."""
+        return torch.sigmoid(raw[:, -1]) if self.cfg.presence else None
 
     def encoder_input(self, image: torch.Tensor, partial_image: torch.Tensor, partial_mask: torch.Tensor) -> torch.Tensor:
         parts = {"I": [image], "I+dI": [image, image - partial_image], "I+M": [image, partial_mask],
@@ -138,7 +153,11 @@ class PriSMONet(nn.Module):
         ``stop`` (``prismonet.model.stopping``): a scene stops when the slots so far explain it, or
         when a step's slot explains nothing more (that slot is dropped); its remaining slots are
         inactive (``params.active``) and cast no ray, and the loop ends when every scene has
-        stopped. ``None``: all steps run."""
+        stopped. ``None``: all steps run.
+
+        With ``cfg.presence``: in training every slot is rendered and the composite is
+        ``presence_composite``; otherwise a slot whose presence is below 0.5 is dropped (inactive), and
+        with ``stop`` a scene stops at its first absent slot instead of by ``stop``'s pixel rule."""
         B, C, H, W = image.shape
         if C != 3 or (H, W) != (self.cfg.image_size, self.cfg.image_size):
             raise ValueError(f"image: expected shape (B, 3, {self.cfg.image_size}, {self.cfg.image_size}), got {tuple(image.shape)}")
@@ -150,32 +169,47 @@ class PriSMONet(nn.Module):
         cur_image = bg_color[:, :, None, None].expand(B, 3, H, W)
         cur_depth = torch.full((B, 1, H, W), float("inf"), dtype=image.dtype)
         cur_mask = torch.zeros(B, 1, H, W, dtype=image.dtype)
-        slots, depths, masks, colors, softs = [], [], [], [], []
+        slots, depths, masks, colors, softs, presences = [], [], [], [], [], []
         settings = self.render_settings()
+        soft_presence = self.cfg.presence and self.training  # compose by presence; drop no slot
+        gate = self.cfg.presence and not self.training  # drop absent slots, stop at them with ``stop``
+        pixel_stop = stop is not None and not gate
         live = before = None
-        if stop is not None:
+        if stop is not None or gate:
             live = torch.ones(B, dtype=torch.bool)
+        if pixel_stop:
             before = stop.count(cur_image, torch.minimum(cur_depth, bg_depth))
         for _ in range(N):
-            if live is not None:
+            if pixel_stop:
                 live = live & ~stop.explained(before)
-                if not live.any():
-                    break
+            if live is not None and not live.any():
+                break
             pi, pm = (cur_image.detach(), cur_mask.detach()) if self.cfg.detach_partials else (cur_image, cur_mask)
-            params = self.decode_latent(self.encoder(self.encoder_input(image, pi, pm)), K, T_world_cam, ground_z)
-            params.active = None if live is None else live[:, None].clone()
+            raw = self.encoder(self.encoder_input(image, pi, pm))
+            params = self.decode_latent(raw, K, T_world_cam, ground_z)
+            p = self.presence_of(raw)
+            present = None
+            if gate:  # an absent slot is dropped; with ``stop`` its scene stops there
+                present = live & (p >= 0.5)
+                live = present if stop is not None else live
+            params.active = None if live is None else (live if present is None else present)[:, None].clone()
             obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
             d, m, c = obj.depth, obj.mask, obj.color[:, 0]  # (B, 1, H, W) x2, (B, 3, H, W)
             win = m & (d < cur_depth)
-            if live is not None:  # drop the slot where it explains nothing more, and stop there
+            if present is not None:
+                m, win = m & present[:, None, None, None], win & present[:, None, None, None]
+            elif soft_presence:  # the encoder's partial composition holds the slots more present than not
+                win = win & (p >= 0.5)[:, None, None, None]
+            if pixel_stop:  # drop the slot where it explains nothing more, and stop there
                 after = stop.count(torch.where(win, c, cur_image), torch.minimum(torch.where(win, d, cur_depth), bg_depth))
                 live = live & stop.gained(before, after)
                 before = torch.where(live[:, None], after, before)
                 m, win = m & live[:, None, None, None], win & live[:, None, None, None]
                 params.active = live[:, None].clone()
+            presences.append(p)
             cur_image = torch.where(win, c, cur_image)
             cur_depth = torch.where(win, d, cur_depth)
-            cur_mask = torch.maximum(cur_mask, m.to(image.dtype))
+            cur_mask = torch.maximum(cur_mask, (win if soft_presence else m).to(image.dtype))
             slots.append(params)
             depths.append(d[:, 0])
             masks.append(m[:, 0])
@@ -187,11 +221,18 @@ class PriSMONet(nn.Module):
             masks.append(torch.zeros(B, H, W, dtype=torch.bool))
             colors.append(torch.zeros(B, 3, H, W, dtype=image.dtype))
             softs.append(None if self.cfg.soft_mask_tau <= 0 else torch.zeros(B, 1, H, W, dtype=image.dtype))
+            if self.cfg.presence:
+                presences.append(torch.zeros(B, dtype=image.dtype))
         params = _cat_slots(slots)
         obj_depth, obj_mask, obj_color = torch.stack(depths, 1), torch.stack(masks, 1), torch.stack(colors, 1)
-        comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
         soft = torch.cat(softs, 1) if softs[0] is not None else None
-        return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft)
+        presence = torch.stack(presences, 1) if self.cfg.presence else None
+        if soft_presence:
+            comp = presence_composite(obj_depth, obj_mask, obj_color, presence, bg_color, bg_depth)
+            soft = None if soft is None else soft * presence[:, :, None, None]  # L_mask sees present slots
+        else:
+            comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
+        return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
 
     def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""

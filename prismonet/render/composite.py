@@ -53,3 +53,36 @@ def composite(
     depth = torch.where(hit4, depth, bg_depth)
     instance = torch.where(hit, winner + 1, torch.zeros_like(winner))
     return Composite(image, depth, hit4.to(image.dtype), instance)
+
+
+def presence_composite(
+    obj_depth: torch.Tensor, obj_mask: torch.Tensor, obj_color: torch.Tensor, presence: torch.Tensor,
+    bg_color: torch.Tensor, bg_depth: torch.Tensor,
+) -> Composite:
+    """Compose slots that are each present with a probability (the explicit presence output).
+
+    Per pixel, the slots that hit it are taken front to back (by detached depth; ties keep slot
+    order) and composed like layers of opacity ``presence``: slot k adds ``p_k T_k`` of its colour
+    and depth, where ``T_k`` is the product of ``1 - p_j`` over the slots in front of it, and the
+    background gets what is left. With every presence 0 or 1 this is exactly ``composite`` of the
+    present slots; in between it is differentiable in ``presence``, colours and depths.
+
+    Args:
+        presence: ``(B, K)`` in [0, 1]; the rest as in ``composite``. ``instance`` and ``mask`` are
+        those of the slots with presence >= 0.5.
+    """
+    B, K, H, W = obj_depth.shape
+    alpha = presence[:, :, None, None] * obj_mask.to(obj_depth.dtype)  # (B, K, H, W)
+    order = torch.where(obj_mask, obj_depth.detach(), torch.full_like(obj_depth, float("inf")))
+    order = order.sort(dim=1, stable=True).indices
+    a = torch.gather(alpha, 1, order)
+    d = torch.gather(obj_depth, 1, order)
+    c = torch.gather(obj_color, 1, order[:, :, None].expand(B, K, 3, H, W))
+    keep = torch.cumprod(1 - a, dim=1)  # transmittance behind each layer
+    T = torch.cat([torch.ones_like(keep[:, :1]), keep[:, :-1]], 1)
+    w = a * T  # (B, K, H, W)
+    rest = keep[:, -1:]  # (B, 1, H, W)
+    image = (w[:, :, None] * c).sum(1) + rest * bg_color[:, :, None, None]
+    depth = (w * d).sum(1, keepdim=True) + rest * bg_depth
+    hard = composite(obj_depth, obj_mask & (presence >= 0.5)[:, :, None, None], obj_color, bg_color, bg_depth)
+    return Composite(image, depth, hard.mask, hard.instance)
