@@ -30,13 +30,35 @@ def _scene_split(args) -> tuple[int, int, int]:
     return (train, val, n - train - val)
 
 
+def _randomize(args):
+    """``RandomizeConfig`` from ``--randomize`` and ``--randomize-range NAME=LO,HI`` (which implies it), or None."""
+    from dataclasses import fields
+
+    from prismonet.data.clevr import RandomizeConfig
+
+    if not (args.randomize or args.randomize_range):
+        return None
+    ranges = {f.name for f in fields(RandomizeConfig) if f.type in ("tuple[float, float]", tuple[float, float])}
+    over = {}
+    for item in args.randomize_range or []:
+        name, _, value = item.partition("=")
+        parts = value.split(",")
+        if name not in ranges or len(parts) != 2:
+            raise ValueError(f"--randomize-range: expected NAME=LO,HI with NAME one of {', '.join(sorted(ranges))}, got {item!r}")
+        try:
+            over[name] = (float(parts[0]), float(parts[1]))
+        except ValueError:
+            raise ValueError(f"--randomize-range: {item!r}: LO and HI must be numbers") from None
+    return RandomizeConfig(**over)
+
+
 def cmd_clevr(args) -> int:
-    from prismonet.data.clevr import ClevrConfig, RandomizeConfig
+    from prismonet.data.clevr import ClevrConfig
     from prismonet.data.generate import generate_clevr
 
     cfg = ClevrConfig(num_objects=args.objects, min_objects=args.min_objects, area_half=args.area, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
                       random_height=args.random_height, full_rotation=args.full_rotation, camera_jitter=args.camera_jitter,
-                      shapes=args.shapes, shape_split=args.shape_split, randomize=RandomizeConfig() if args.randomize else None)
+                      shapes=args.shapes, shape_split=args.shape_split, randomize=_randomize(args))
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
     print(f"wrote {n} scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s ({n / meta['seconds']:.0f} scenes/s)")
@@ -147,6 +169,8 @@ def _add_clevr(dsub) -> None:
     p.add_argument("--randomize", action="store_true",
                    help="per scene: ground colour, light direction and ambient level, camera distance, elevation, heading, "
                         "look-at point and focal length (RandomizeConfig's ranges; for the real-tabletop model)")
+    p.add_argument("--randomize-range", action="append", metavar="NAME=LO,HI",
+                   help="another range for one of RandomizeConfig's draws, e.g. focal_scale=0.8,1.8 (repeatable; implies --randomize)")
     p.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture': "
                                                      "its meshes, in their own colours")
     p.add_argument("--shape-split", choices=("seen", "unseen"), default="seen", help="which models of an imported folder")
