@@ -24,6 +24,7 @@ MODELS = {
     "clevr1to8": "clevr1to8_model",
     "blocktowers": "blocktowers_model",
     "cars": "cars_model",
+    "tableware": "tableware_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -45,6 +46,7 @@ MODEL_SAMPLES = {
     "clevr5": "samples/clevr5",
     "blocktowers": "samples/towers",
     "cars": "samples/cars",
+    "tableware": "samples/tableware",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 
