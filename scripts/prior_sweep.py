@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -248,9 +249,13 @@ def main(argv: list[str] | None = None) -> int:
         if _scenes_of(setting) is not None and any("fg_iou_bounds" not in by_width[str(w)] for w in widths):
             for w, fit in scene_fit(setting, widths, out, args.fit_scenes, args.threads).items():
                 by_width[str(w)].update(fit)
-        tmp = summary_path.with_name(".sweep.json.tmp")
-        tmp.write_text(json.dumps(results, indent=2))
+        # merge into what is on disk now: another sweep process may have written other settings meanwhile
+        on_disk = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        on_disk[setting] = by_width
+        tmp = summary_path.with_name(f".sweep.json.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(on_disk, indent=2))
         tmp.replace(summary_path)
+        results.update(on_disk)
     if not args.samples:
         print(table({s: r for s, r in results.items() if s in args.settings}))
     return 0
