@@ -50,38 +50,44 @@ def _rot(rot, sym) -> str:
     return "—" if rot is None else f"{rot:.1f}°" + ("" if sym is None else f" [{sym:.1f}°]")
 
 
+MAIN_KEYS = ("mAP", "AP0.5", "AR0.5", "F1_0.5", "allObj", "img_RMSE", "PSNR", "SSIM", "depth_RMSE", "AbsRD", "SqRD", "pos_err")
+SUPERVISED_KEYS = ("mAP", "AP0.5", "AR0.5", "img_RMSE", "PSNR", "depth_RMSE", "pos_err")
+DIGITS = {"PSNR": 2, "AbsRD": 4, "SqRD": 4}
+
+
+def _line(setting: str, label: str, scenes: str, cells: list[str], rot: str, unfiltered: str) -> str:
+    return f"| {setting} | {label} | {scenes} | " + " | ".join(cells) + f" | {rot} | {unfiltered} |"
+
+
+def _table(head: str, rows: list[tuple[str, str, dict]], groups, keys: tuple[str, ...]) -> str:
+    """``groups(setting)`` yields ``(row, [(label, paper values, paper rot, paper rot sym)], our label)``."""
+    lines = [head, "|" + "---|" * (len(keys) + 5)]
+    for setting in dict.fromkeys(s for s, _, _ in rows):
+        for row, papers, ours in groups(setting):
+            for label, values, rot, sym in papers:
+                lines.append(_line(setting, label, "5,000", [_f(v, 2 if k == "PSNR" else 3) for k, v in zip(keys, values)], _rot(rot, sym), "—"))
+            for s, rr, r in rows:
+                if s == setting and rr == row:
+                    cells = [(f"**{_f(r[k])}**" if k == "AP0.5" else _f(r[k], DIGITS.get(k, 3))) for k in keys]
+                    lines.append(_line(setting, ours, f"{r['scenes']:,}", cells, _rot(r["rot_err"], r.get("rot_err_sym")),
+                                       _f(r["AP0.5_unfiltered"])))
+    return "\n".join(lines)
+
+
 def main_table(rows: list[tuple[str, str, dict]]) -> str:
     head = ("| setting | row | scenes | mAP | AP0.5 | AR0.5 | F1 | allObj | RMSE | PSNR | SSIM | D-RMSE | AbsRD | SqRD | pos "
             "| rot [sym.] | AP0.5 unf. |")
-    lines = [head, "|" + "---|" * 17]
-    for setting in dict.fromkeys(s for s, _, _ in rows):
-        for split in ("seen", "novel"):
-            for kind in ("best", "mean"):
-                p = PAPER[setting][f"{split} {kind}"]
-                lines.append(f"| {setting} | paper, {split} ({kind} of 5) | 5,000 | " + " | ".join(_f(v, 2 if i == 6 else 3) for i, v in enumerate(p[:12]))
-                             + f" | {_rot(p[12], p[13])} | — |")
-            for s, row, r in rows:
-                if s == setting and row == split:
-                    lines.append(f"| {setting} | **ours, {split}** | {r['scenes']:,} | {_f(r['mAP'])} | **{_f(r['AP0.5'])}** | {_f(r['AR0.5'])} | "
-                                 f"{_f(r['F1_0.5'])} | {_f(r['allObj'])} | {_f(r['img_RMSE'])} | {_f(r['PSNR'], 2)} | {_f(r['SSIM'])} | "
-                                 f"{_f(r['depth_RMSE'])} | {_f(r['AbsRD'], 4)} | {_f(r['SqRD'], 4)} | {_f(r['pos_err'])} | "
-                                 f"{_rot(r['rot_err'], r.get('rot_err_sym'))} | {_f(r['AP0.5_unfiltered'])} |")
-    return "\n".join(lines)
+    groups = lambda setting: [(split, [(f"paper, {split} ({kind} of 5)", PAPER[setting][f"{split} {kind}"][:12],
+                                        *PAPER[setting][f"{split} {kind}"][12:]) for kind in ("best", "mean")], f"**ours, {split}**")
+                              for split in ("seen", "novel")]
+    return _table(head, rows, groups, MAIN_KEYS)
 
 
 def supervised_table(rows: list[tuple[str, str, dict]]) -> str:
-    lines = ["| setting | variant | who | mAP | AP0.5 | AR0.5 | RMSE | PSNR | D-RMSE | pos | rot [sym.] | AP0.5 unf. |", "|" + "---|" * 12]
-    for setting in dict.fromkeys(s for s, _, _ in rows):
-        for row in ("weak", "pose", "mask"):
-            p = SUPERVISED[setting][row]
-            lines.append(f"| {setting} | {ROW_NAMES[row]} | paper (mean of 5) | " + " | ".join(_f(v, 2 if i == 4 else 3) for i, v in enumerate(p[:7]))
-                         + f" | {_rot(p[7], None)} | — |")
-            for s, rr, r in rows:
-                if s == setting and rr == row:
-                    lines.append(f"| {setting} | {ROW_NAMES[row]} | **ours** ({r['scenes']:,} scenes) | {_f(r['mAP'])} | **{_f(r['AP0.5'])}** | "
-                                 f"{_f(r['AR0.5'])} | {_f(r['img_RMSE'])} | {_f(r['PSNR'], 2)} | {_f(r['depth_RMSE'])} | {_f(r['pos_err'])} | "
-                                 f"{_rot(r['rot_err'], r.get('rot_err_sym'))} | {_f(r['AP0.5_unfiltered'])} |")
-    return "\n".join(lines)
+    head = "| setting | variant | scenes | mAP | AP0.5 | AR0.5 | RMSE | PSNR | D-RMSE | pos | rot [sym.] | AP0.5 unf. |"
+    groups = lambda setting: [(row, [(f"{ROW_NAMES[row]}: paper (mean of 5)", SUPERVISED[setting][row][:7], SUPERVISED[setting][row][7], None)],
+                               f"{ROW_NAMES[row]}: **ours**") for row in ("weak", "pose", "mask")]
+    return _table(head, rows, groups, SUPERVISED_KEYS)
 
 
 def main(argv: list[str] | None = None) -> int:
