@@ -1,7 +1,6 @@
 """The scene model and its losses: shapes, ablation switches doing what they claim, schedules."""
 
 
-import math
 
 import pytest
 import torch
