@@ -38,7 +38,7 @@ def _randomize(args):
 
     if not (args.randomize or args.randomize_range):
         return None
-    ranges = {f.name for f in fields(RandomizeConfig) if f.type in ("tuple[float, float]", tuple[float, float])}
+    ranges = {f.name for f in fields(RandomizeConfig) if isinstance(f.default, tuple)}
     over = {}
     for item in args.randomize_range or []:
         name, _, value = item.partition("=")

@@ -216,7 +216,7 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
         dist = distill_loss(p, out.latents.bg_color, *distill)
     else:
         dist = zero
-    presence = out.presence.sum(1).mean() if getattr(out, "presence", None) is not None else zero
+    presence = out.presence.sum(1).mean() if out.presence is not None else zero
     total = (cfg.w_image * image + cfg.w_depth * depth + cfg.w_ground * ground + shape_weight(cfg, step) * shape
              + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose + cfg.w_mask * mask
              + cfg.w_distill * dist + cfg.w_presence * presence)

@@ -188,28 +188,30 @@ class PriSMONet(nn.Module):
             raw = self.encoder(self.encoder_input(image, pi, pm))
             params = self.decode_latent(raw, K, T_world_cam, ground_z)
             p = self.presence_of(raw)
-            present = None
-            if gate:  # an absent slot is dropped; with ``stop`` its scene stops there
+            if gate:  # an absent slot is inactive (it casts no ray); with ``stop`` its scene stops there
                 present = live & (p >= 0.5)
                 live = present if stop is not None else live
-            params.active = None if live is None else (live if present is None else present)[:, None].clone()
+                params.active = present[:, None].clone()
+            else:
+                params.active = None if live is None else live[:, None].clone()
             obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
             d, m, c = obj.depth, obj.mask, obj.color[:, 0]  # (B, 1, H, W) x2, (B, 3, H, W)
             win = m & (d < cur_depth)
-            if present is not None:
-                m, win = m & present[:, None, None, None], win & present[:, None, None, None]
-            elif soft_presence:  # the encoder's partial composition holds the slots more present than not
-                win = win & (p >= 0.5)[:, None, None, None]
+            m_seen = m  # what the next encoder step sees of this slot
+            if soft_presence:  # the partial composition holds the slots more present than not
+                keep = (p >= 0.5)[:, None, None, None]
+                win, m_seen = win & keep, m & keep
             if pixel_stop:  # drop the slot where it explains nothing more, and stop there
                 after = stop.count(torch.where(win, c, cur_image), torch.minimum(torch.where(win, d, cur_depth), bg_depth))
                 live = live & stop.gained(before, after)
                 before = torch.where(live[:, None], after, before)
                 m, win = m & live[:, None, None, None], win & live[:, None, None, None]
+                m_seen = m
                 params.active = live[:, None].clone()
             presences.append(p)
             cur_image = torch.where(win, c, cur_image)
             cur_depth = torch.where(win, d, cur_depth)
-            cur_mask = torch.maximum(cur_mask, (win if soft_presence else m).to(image.dtype))
+            cur_mask = torch.maximum(cur_mask, m_seen.to(image.dtype))
             slots.append(params)
             depths.append(d[:, 0])
             masks.append(m[:, 0])

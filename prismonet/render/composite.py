@@ -84,5 +84,5 @@ def presence_composite(
     rest = keep[:, -1:]  # (B, 1, H, W)
     image = (w[:, :, None] * c).sum(1) + rest * bg_color[:, :, None, None]
     depth = (w * d).sum(1, keepdim=True) + rest * bg_depth
-    hard = composite(obj_depth, obj_mask & (presence >= 0.5)[:, :, None, None], obj_color, bg_color, bg_depth)
-    return Composite(image, depth, hard.mask, hard.instance)
+    winner, hit = zbuffer(obj_depth, obj_mask & (presence >= 0.5)[:, :, None, None])
+    return Composite(image, depth, hit[:, None].to(image.dtype), torch.where(hit, winner + 1, torch.zeros_like(winner)))
