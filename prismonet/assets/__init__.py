@@ -21,7 +21,6 @@ MODELS = {
     "clevr2": "clevr2_model",
     "clevr4": "clevr4_model",
     "clevr5": "clevr5_model",
-    "clevr1to8": "clevr1to8_model",
     "blocktowers": "blocktowers_model",
     "cars": "cars_model",
     "tableware": "tableware_model",

@@ -84,12 +84,17 @@ def _raised(b, j: int, k: int, specs) -> bool:
     return bottom > RAISED_FRACTION * float(b.obj_scale[j, k])
 
 
+def _generator_config(ds) -> dict:
+    """The generator config a dataset was written with (``meta["config"]``), or ``{}``."""
+    return (getattr(ds, "meta", None) or {}).get("config", {}) or {}
+
+
 def dataset_shapes(ds):
     """The ``ShapeSpec`` list a dataset's ``obj_shape`` ids index (its generator's shape library;
     Clevr's when the dataset does not say), and whether rotational symmetries are known for them."""
     from prismonet.shapes.library import CLEVR, shape_library
 
-    cfg = (getattr(ds, "meta", None) or {}).get("config", {}) or {}
+    cfg = _generator_config(ds)
     name = cfg.get("shapes", CLEVR)
     try:
         return shape_library(name, cfg.get("shape_split", "seen")).specs, name == CLEVR
@@ -103,7 +108,7 @@ def setting_symmetry(ds) -> float | None:
     import json
     from pathlib import Path
 
-    folder = Path(((getattr(ds, "meta", None) or {}).get("config", {}) or {}).get("shapes", "clevr"))
+    folder = Path(_generator_config(ds).get("shapes", "clevr"))
     try:
         return SETTING_SYMMETRY.get(json.loads((folder / "models.json").read_text()).get("setting"))
     except (OSError, ValueError):

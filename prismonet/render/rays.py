@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from prismonet.shapes.normalize import BOX_HALF
+from prismonet.shapes.normalize import PADDED_CUBE
 
 NEAR_Z = 1e-2
 """Samples start at least this far in front of the camera (camera z): a box that reaches behind
@@ -24,7 +24,7 @@ so that an axis-parallel ray gives +-inf slab bounds instead of 0/0 = NaN."""
 
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 """An object-frame axis-aligned box ``(lo, hi)``."""
-FULL_BOX: Box = ((-BOX_HALF,) * 3, (BOX_HALF,) * 3)
+FULL_BOX: Box = PADDED_CUBE
 
 
 def _corners(box: Box, dtype) -> torch.Tensor:

@@ -19,6 +19,8 @@ PADDING = 0.1
 set is never at the edge of the sampled region."""
 BOX_HALF = SHAPE_HALF_EXTENT + PADDING
 """Half-side of the object-frame cube that holds every normalised shape (and its SDF domain)."""
+PADDED_CUBE = ((-BOX_HALF,) * 3, (BOX_HALF,) * 3)
+"""The object-frame box ``(lo, hi)`` that holds every normalised shape with its padding."""
 
 FLAT_RELATIVE_EXTENT = 1e-6
 """A mesh whose smallest bounding-box extent is below this fraction of its largest is flat."""

@@ -44,10 +44,10 @@ class ShapePrior:
     def bounds(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """Object-frame box ``(lo, hi)`` of its training shapes with their padding (``info["bounds"]``,
         written by pre-training); the padded cube for a prior without one, such as the Clevr prior."""
-        from prismonet.shapes.normalize import BOX_HALF
+        from prismonet.shapes.normalize import PADDED_CUBE
 
         b = self.info.get("bounds")
-        return (tuple(b[0]), tuple(b[1])) if b else ((-BOX_HALF,) * 3, (BOX_HALF,) * 3)
+        return (tuple(b[0]), tuple(b[1])) if b else PADDED_CUBE
 
     def frozen(self) -> "ShapePrior":
         """Put the decoder in eval mode with gradients off for its weights (not its inputs)."""
