@@ -33,6 +33,8 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
     g.add_argument("--fit-color", type=int, default=fit_color, metavar="K",
                    help=f"fit texture latents and background colour to the image for K steps last, geometry held "
                         f"(default {fit_color}; 50 is the measured setting)")
+    g.add_argument("--prune", action="store_true",
+                   help="last, drop the slots that explain nothing (fewer than 10 pixels of the input that the other slots do not)")
     if depth:
         g.add_argument("--color-only", "--search-color-only", dest="color_only", action="store_true",
                        help="every step reads colour alone, as if the input had no depth (the paper's test-time input)")
@@ -46,7 +48,7 @@ def inference_config(args, has_depth: bool = True):
     return InferenceConfig.of(args.extra_slots, args.search, args.refine, args.fit_color,
                               use_depth=has_depth and not getattr(args, "color_only", False),
                               refine_lr=args.refine_lr, refine_pose_lr_scale=args.refine_pose_lr_scale,
-                              stop=getattr(args, "stop", False))
+                              stop=getattr(args, "stop", False), prune=getattr(args, "prune", False))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

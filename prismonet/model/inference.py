@@ -9,9 +9,10 @@ In order, each off by default:
 2. pose search: each slot's scale, position and yaw, by coordinate search (``prismonet.model.search``);
 3. refinement: gradient steps on all latents against the training losses (``prismonet.model.refine``);
 4. colour fit: texture latents and background colour against the image, geometry held
-   (``prismonet.model.color_fit``).
+   (``prismonet.model.color_fit``);
+5. pruning: the slots that explain nothing are dropped (``prismonet.model.prune``).
 
-``use_depth`` says whether steps 1-3 may read the scene's depth; ``False`` is the paper's test-time
+``use_depth`` says whether steps 0-3 and 5 may read the scene's depth; ``False`` is the paper's test-time
 input (colour alone) and what a photo gives. Every command that decodes scenes (``evaluate``,
 ``reconstruct``, ``demo``, ``real reconstruct``, ``distill``) builds one ``InferenceConfig`` from the
 same flags and calls ``infer``, so a setting means the same thing everywhere.
@@ -27,6 +28,7 @@ import torch
 from prismonet.model.color_fit import ColorFitConfig, fit_colors
 from prismonet.model.losses import LossConfig
 from prismonet.model.prismonet import ModelOutput
+from prismonet.model.prune import PRUNE_RULE, prune
 from prismonet.model.refine import RefineConfig, refine
 from prismonet.model.search import SearchConfig, search_latents
 from prismonet.model.select import check_extra_slots, decode_overcomplete
@@ -49,23 +51,27 @@ class InferenceConfig:
     """Whether stopping, slot selection, search and refinement may read the scene's depth."""
     stop: StopRule | None = None
     """Stop the encoder when the slots so far explain the input (``None``: every slot is decoded)."""
+    prune: StopRule | None = None
+    """Last, drop the slots that explain nothing by this rule's ``min_gain`` (``None``: keep every slot)."""
 
     def __post_init__(self) -> None:
         check_extra_slots(self.extra_slots)
 
     @classmethod
     def of(cls, extra_slots: int = 0, search: int = 0, refine: int = 0, fit_color: int = 0, use_depth: bool = True,
-           refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False) -> "InferenceConfig":
+           refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False,
+           prune: bool = False) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each)."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         return cls(extra_slots, SearchConfig(rounds=search),
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
-                   ColorFitConfig(fit_color), use_depth, StopRule() if stop else None)
+                   ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None)
 
     @property
     def feed_forward(self) -> bool:
         """True when nothing runs after the encoder."""
-        return not (self.extra_slots or self.search.rounds or self.refine.steps or self.color_fit.steps or self.stop)
+        return not (self.extra_slots or self.search.rounds or self.refine.steps or self.color_fit.steps or self.stop
+                    or self.prune)
 
     def without_depth(self) -> "InferenceConfig":
         return replace(self, use_depth=False)
@@ -75,7 +81,8 @@ class InferenceConfig:
         steps = [f"{self.extra_slots} extra slots" if self.extra_slots else "",
                  f"{self.search.rounds} pose-search rounds" if self.search.rounds else "",
                  f"{self.refine.steps} refinement steps" if self.refine.steps else "",
-                 f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else ""]
+                 f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else "",
+                 "pruning the slots that explain nothing" if self.prune else ""]
         steps = [s for s in steps if s]
         where = "" if self.use_depth or not (steps or self.stop) else " (colour only)"
         enc = "encoder stopping when explained" if self.stop else "encoder"
@@ -99,7 +106,7 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
         loss_cfg: the training losses (selection weights and refinement objective; default ``LossConfig()``).
         num_slots: slots kept (default: the model's).
         on_step: called as ``on_step(name, output)`` after each step that ran: ``"encoder"``,
-            ``"searched"``, ``"refined"``, ``"color_fit"``.
+            ``"searched"``, ``"refined"``, ``"color_fit"``, ``"pruned"``.
     """
     loss_cfg = loss_cfg or LossConfig()
     report = on_step or (lambda name, out: None)
@@ -117,4 +124,8 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
     if cfg.color_fit.steps > 0:
         out = fit_colors(model, out, batch, cfg.color_fit)
         report("color_fit", out)
+    if cfg.prune is not None:
+        with torch.no_grad():
+            out = prune(out, batch.rgb, batch.depth if cfg.use_depth else None, cfg.prune)
+        report("pruned", out)
     return out

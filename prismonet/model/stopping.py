@@ -128,10 +128,14 @@ def stop_counts(rule: StopRule, out, image: torch.Tensor, depth: torch.Tensor | 
 
 def keep_first(out, counts: torch.Tensor):
     """``out`` with each scene's slots from ``counts[b]`` on emptied (no pixels, inactive), composed anew."""
+    N = out.obj_depth.shape[1]
+    return keep_slots(out, torch.arange(N)[None] < counts[:, None])
+
+
+def keep_slots(out, keep: torch.Tensor):
+    """``out`` with the slots where ``keep (B, N)`` is false emptied (no pixels, inactive), composed anew."""
     from prismonet.render import composite
 
-    B, N = out.obj_depth.shape[:2]
-    keep = torch.arange(N)[None] < counts[:, None]  # (B, N)
     mask = out.obj_mask & keep[:, :, None, None]
     p = out.latents.params
     params = replace(p, active=keep if p.active is None else p.active & keep)
