@@ -201,3 +201,16 @@ def test_mask_figure_has_a_labelled_column_per_model(tmp_path):
     img = cv2.imread(str(tmp_path / "f.png"))
     # 3 rows of (18-px label + 128-px panel), 4-px gaps; input, truth, PriSMONet and two baselines
     assert img.shape[:2] == (3 * 146 + 2 * 4, 5 * 128 + 4 * 4)
+
+
+def test_broadcast_decoder_without_tiling_is_the_tiled_convolution():
+    from prismonet.baselines.blocks import BroadcastDecoder
+
+    torch.manual_seed(0)
+    dec = BroadcastDecoder(latent_dim=5, channels=4, out=2, image_size=8).double()
+    z = torch.randn(3, 5, dtype=torch.float64, requires_grad=True)
+    assert torch.allclose(dec(z), dec.tiled(z), atol=1e-12)
+    g_fast = torch.autograd.grad(dec(z).square().sum(), [z, dec.net[0].weight])
+    g_ref = torch.autograd.grad(dec.tiled(z).square().sum(), [z, dec.net[0].weight])
+    assert all(torch.allclose(a, b, atol=1e-10) for a, b in zip(g_fast, g_ref))
+    assert torch.autograd.gradcheck(lambda x: dec(x), (z,))
