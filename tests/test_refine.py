@@ -82,3 +82,23 @@ def test_evaluate_cli_rejects_a_bad_pose_step_even_without_refinement(capsys):
 
     assert main(["evaluate", "shipped", str(shipped_samples()), "--refine-pose-lr-scale", "-1", "--quiet"]) != 0
     assert "pose_lr_scale > 0" in capsys.readouterr().err
+
+
+def test_refinement_reads_no_ground_truth_even_for_a_supervised_model():
+    """A model trained with L_pose and L_mask on true masks: its test-time refinement must give the same
+    result whatever the batch's poses and instance masks say (only the input RGB-D may enter)."""
+    from dataclasses import replace
+
+    model, info = load_model("shipped")
+    loss_cfg = replace(training_loss_config(info), w_pose=1.0, w_mask=0.5, mask_from_depth=False, w_distill=1.0)
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1])
+    g = torch.Generator().manual_seed(0)
+    lies = replace(b, instance=torch.randint(0, 4, b.instance.shape, generator=g),
+                   obj_position=b.obj_position + torch.randn(b.obj_position.shape, generator=g),
+                   obj_yaw=b.obj_yaw + 1.0, obj_scale=b.obj_scale * 1.5)
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    a = refine(model, out, b, loss_cfg, RefineConfig(steps=3))
+    c = refine(model, out, lies, loss_cfg, RefineConfig(steps=3))
+    for f in ("position", "scale", "cos_sin", "z_sh", "z_tex"):
+        assert torch.equal(getattr(a.latents.params, f), getattr(c.latents.params, f)), f

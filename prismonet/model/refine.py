@@ -5,6 +5,10 @@ The encoder's output is the starting point; shape and texture latents, poses, sc
 background colour are then optimised with Adam (poses at a larger step) for ``steps`` steps on
 the training losses at their end-of-training schedule (least blur, final shape-regulariser weight). The network weights
 stay fixed. Without depth (real photos) only the image term is used.
+
+Only what a test input gives may enter (``test_time_losses``): the supervised terms a model may have been
+trained with (L_pose on true poses, L_mask on true masks, the distillation targets) are left out, and
+L_mask, where the model was trained with it, reads the silhouette off the input depth.
 """
 
 from __future__ import annotations
@@ -49,6 +53,14 @@ def render_latents(model, params: SceneParams, bg_color: torch.Tensor, K: torch.
     return ModelOutput(SceneLatents(params, bg_color), comp, obj.depth, obj.mask, obj.color, bg_depth, obj.soft_mask)
 
 
+def test_time_losses(loss_cfg: LossConfig, use_depth: bool, soft_silhouettes: bool) -> LossConfig:
+    """``loss_cfg`` with every term that reads more than the input RGB(-D) switched off: L_pose (true
+    poses), the distillation regression, L_mask unless it can take its silhouettes from the input depth
+    (then it does, whatever the model was trained with), and the depth terms without depth."""
+    return replace(loss_cfg, use_depth=loss_cfg.use_depth and use_depth, w_pose=0.0, w_distill=0.0,
+                   w_mask=loss_cfg.w_mask if use_depth and soft_silhouettes else 0.0, mask_from_depth=True)
+
+
 def refine(model, out: ModelOutput, batch, loss_cfg: LossConfig, cfg: RefineConfig = RefineConfig(),
            use_depth: bool = True) -> ModelOutput:
     """Refine ``out`` (the model's output on ``batch``) for ``cfg.steps`` steps; returns the new output."""
@@ -56,8 +68,7 @@ def refine(model, out: ModelOutput, batch, loss_cfg: LossConfig, cfg: RefineConf
         return out
     p0 = out.latents.params
     H, W = batch.rgb.shape[-2:]
-    loss_cfg = replace(loss_cfg, use_depth=loss_cfg.use_depth and use_depth,
-                       w_mask=loss_cfg.w_mask if use_depth and model.cfg.soft_mask_tau > 0 else 0.0)
+    loss_cfg = test_time_losses(loss_cfg, use_depth, model.cfg.soft_mask_tau > 0)
     leaf = lambda t: t.detach().clone().requires_grad_(True)
     z_sh, z_tex, pos, cs, scale, bg = (leaf(t) for t in (p0.z_sh, p0.z_tex, p0.position, p0.cos_sin, p0.scale, out.latents.bg_color))
     opt = torch.optim.Adam([{"params": [z_sh, z_tex, scale, bg]},
