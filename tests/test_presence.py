@@ -106,6 +106,33 @@ def test_training_composes_by_presence_and_charges_it(presence_model, batch):
     model.eval()
 
 
+def test_straight_through_composes_the_present_slots_and_still_learns_presence(presence_model, batch):
+    """With ``presence_straight_through`` the training composite is the z-buffer of the slots with p >= 0.5
+    (as at inference), and the presence output still gets a gradient from the image loss."""
+    from dataclasses import replace
+
+    _, soft_model = presence_model
+    model = PriSMONet(replace(soft_model.cfg, presence_straight_through=True))
+    model.load_state_dict(soft_model.state_dict())
+    head = model.encoder.head[-1]
+    with torch.no_grad():  # presences that differ from slot to slot, on both sides of 0.5
+        head.bias[-1] = 0.0
+        head.weight[-1] = torch.randn(head.weight.shape[1], generator=torch.Generator().manual_seed(3))
+    model.train()
+    out = model(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z)
+    p = out.presence.detach()
+    assert (p < 0.5).any() and (p >= 0.5).any() and ((p - 0.5).abs() > 1e-3).all(), p
+    present = (p >= 0.5)[:, :, None, None]
+    hard = composite(out.obj_depth, out.obj_mask & present, out.obj_color, out.latents.bg_color, out.bg_depth)
+    assert torch.allclose(out.composite.image, hard.image, atol=1e-6)
+    assert torch.equal(out.composite.instance, hard.instance)
+    t = compute_losses(model, out, batch, LossConfig(w_mask=0.1, mask_from_depth=True), 0)
+    t.total.backward()
+    g = head.bias.grad[-1]
+    assert torch.isfinite(g) and float(g) != 0.0
+    model.zero_grad()
+
+
 def test_absent_slots_are_dropped_and_stop_the_encoder(presence_model, batch):
     _, model = presence_model
     head = model.encoder.head[-1]

@@ -40,6 +40,11 @@ class ModelConfig:
     the slots are composed as layers of opacity p (``render.composite.presence_composite``) and
     ``loss.w_presence`` charges each present slot; at inference a slot with p < 0.5 is dropped, and with
     ``stop`` the encoder stops at a scene's first absent slot."""
+    presence_straight_through: bool = False
+    """With ``presence``: compose in training with the presences rounded to 0 or 1 (the z-buffer of the
+    present slots, as at inference) and pass the gradient through the layered composition as if they were
+    not rounded. Without it, fractional presences blend slots like semi-transparent layers, which the
+    image loss can exploit (measured on 1-8 objects, EVALUATION.md)."""
     detach_partials: bool = True
     """Feed the partial compositions to the encoder without gradients (cheaper, more stable)."""
     prior: str = "shipped"

@@ -230,8 +230,11 @@ class PriSMONet(nn.Module):
         soft = torch.cat(softs, 1) if softs[0] is not None else None
         presence = torch.stack(presences, 1) if self.cfg.presence else None
         if soft_presence:
-            comp = presence_composite(obj_depth, obj_mask, obj_color, presence, bg_color, bg_depth)
-            soft = None if soft is None else soft * presence[:, :, None, None]  # L_mask sees present slots
+            layer = presence
+            if self.cfg.presence_straight_through:  # forward: present or not; backward: the layered gradient
+                layer = (presence >= 0.5).to(presence.dtype) + presence - presence.detach()
+            comp = presence_composite(obj_depth, obj_mask, obj_color, layer, bg_color, bg_depth)
+            soft = None if soft is None else soft * layer[:, :, None, None]  # L_mask sees present slots
         else:
             comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
         return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
