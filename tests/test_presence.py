@@ -133,6 +133,22 @@ def test_straight_through_composes_the_present_slots_and_still_learns_presence(p
     model.zero_grad()
 
 
+def test_presence_can_be_kept_out_of_the_mask_loss(presence_model, batch):
+    from dataclasses import replace
+
+    _, soft_model = presence_model
+    grads = []
+    for seen in (True, False):
+        model = PriSMONet(replace(soft_model.cfg, presence_straight_through=True, presence_in_mask_loss=seen))
+        model.load_state_dict(soft_model.state_dict())
+        model.train()
+        out = model(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z)
+        t = compute_losses(model, out, batch, LossConfig(w_mask=0.1, mask_from_depth=True), 0)
+        t.mask.backward()
+        grads.append(float(model.encoder.head[-1].bias.grad[-1]))
+    assert grads[0] != 0.0 and grads[1] == 0.0
+
+
 def test_absent_slots_are_dropped_and_stop_the_encoder(presence_model, batch):
     _, model = presence_model
     head = model.encoder.head[-1]

@@ -234,7 +234,8 @@ class PriSMONet(nn.Module):
             if self.cfg.presence_straight_through:  # forward: present or not; backward: the layered gradient
                 layer = (presence >= 0.5).to(presence.dtype) + presence - presence.detach()
             comp = presence_composite(obj_depth, obj_mask, obj_color, layer, bg_color, bg_depth)
-            soft = None if soft is None else soft * layer[:, :, None, None]  # L_mask sees present slots
+            seen = layer if self.cfg.presence_in_mask_loss else layer.detach()
+            soft = None if soft is None else soft * seen[:, :, None, None]  # L_mask sees present slots
         else:
             comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
         return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
