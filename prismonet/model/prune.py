@@ -31,19 +31,26 @@ fitted."""
 def unexplained_without(rule: StopRule, out, image: torch.Tensor, depth: torch.Tensor | None,
                         keep: torch.Tensor) -> torch.Tensor:
     """``(B, N + 1)`` unexplained pixels (before erosion) of the composition of the slots in
-    ``keep (B, N)``: column ``k < N`` without slot ``k`` as well, column ``N`` with all of them."""
+    ``keep (B, N)``: column ``k < N`` without slot ``k`` as well, column ``N`` with all of them (a slot
+    kept in no scene changes nothing: its column is column ``N``, not composed again)."""
     from prismonet.render import composite
 
-    N = keep.shape[1]
-    counts = []
-    for k in range(N + 1):
-        kk = keep.clone()
-        if k < N:
-            kk[:, k] = False
+    bound = rule.bind(image, depth)
+
+    def count(kk: torch.Tensor) -> torch.Tensor:
         c = composite(out.obj_depth, out.obj_mask & kk[:, :, None, None], out.obj_color, out.latents.bg_color, out.bg_depth)
-        bad = rule.unexplained(image, depth, c.image, torch.minimum(c.depth, out.bg_depth), eroded=False)
-        counts.append(bad.sum((1, 2)))
-    return torch.stack(counts, 1)
+        return bound.count(c.image, torch.minimum(c.depth, out.bg_depth))[:, 1]
+
+    base = count(keep)
+    counts = []
+    for k in range(keep.shape[1]):
+        if not keep[:, k].any():
+            counts.append(base)
+            continue
+        kk = keep.clone()
+        kk[:, k] = False
+        counts.append(count(kk))
+    return torch.stack(counts + [base], 1)
 
 
 def prune_keep(rule: StopRule, out, image: torch.Tensor, depth: torch.Tensor | None) -> torch.Tensor:
