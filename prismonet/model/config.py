@@ -45,10 +45,11 @@ class ModelConfig:
     present slots, as at inference) and pass the gradient through the layered composition as if they were
     not rounded. Without it, fractional presences blend slots like semi-transparent layers, which the
     image loss can exploit (measured on 1-8 objects, EVALUATION.md)."""
-    presence_in_mask_loss: bool = True
-    """With ``presence``: L_mask sees each slot's soft silhouette times its presence, and so trains the
-    presence too; ``False`` passes no L_mask gradient to the presence (the silhouettes' leak outside
-    their objects then cannot push every presence down)."""
+    presence_in_mask_loss: bool = False
+    """With ``presence``: ``True`` lets L_mask, which sees each slot's soft silhouette times its presence,
+    train the presence too. That collapses every presence to 0 on 1-8 objects (the silhouettes' leak
+    outside their objects pushes each down; EVALUATION.md), so by default L_mask passes the presence no
+    gradient."""
     detach_partials: bool = True
     """Feed the partial compositions to the encoder without gradients (cheaper, more stable)."""
     prior: str = "shipped"
