@@ -86,7 +86,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         write_image(out / f"{name}_instance.png", o.composite.instance[0].numpy().astype(np.uint8))
         mesh_path = None
         if keep:
-            mesh_path = write_mesh(scene_mesh(net, scene.select(keep), resolution), out / f"{name}.{mesh_format}")
+            mesh_path = write_mesh(scene_mesh(net, LatentScene.from_output(o, b, 0, fp, slots=keep), resolution),
+                                   out / f"{name}.{mesh_format}")
         finite = all(bool(torch.isfinite(t).all()) for t in (o.composite.image, o.composite.depth, o.latents.bg_color,
                                                                o.latents.params.position, o.latents.params.z_sh))
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,

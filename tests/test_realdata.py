@@ -244,3 +244,16 @@ def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
     assert extra["psnr"]["encoder"] >= plain["psnr"]["encoder"] - 1e-6, (plain["psnr"], extra["psnr"])
     with pytest.raises(ValueError, match="non-negative"):
         InferenceConfig(extra_slots=-1)
+
+
+@pytest.mark.parametrize("how", ["stop", "prune"])
+def test_real_reconstruct_with_dropped_slots_saves_the_kept_ones(tmp_path, how):
+    """With stopping or pruning some slots are inactive: the saved scene holds the decoded slots, and the
+    mesh the found ones (their indices are the output's slot indices, not the saved scene's)."""
+    from realdata.reconstruct import reconstruct_photos
+    from prismonet.scene import LatentScene
+
+    (r,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path, inference=InferenceConfig.of(**{how: True}), progress=False)
+    scene = LatentScene.load(r["scene"])
+    assert r["finite"] and scene.bg_color.shape == (3,)
+    assert r["objects_found"] <= scene.num_objects <= 3

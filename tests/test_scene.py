@@ -235,3 +235,21 @@ def test_wrong_shapes_are_named(scene):
         replace(scene, scale=scene.scale[:2])
     with pytest.raises(ValueError, match=r"rgb: expected shape \(3, 64, 64\)"):
         export.point_cloud(torch.zeros(3, 32, 32), torch.ones(64, 64), scene.camera)
+
+
+def test_from_output_keeps_the_decoded_slots_and_the_whole_background(model, inferred):
+    """A stopped or pruned output (``params.active``) gives the active slots only, in order, and the scene's
+    background colour whole; ``slots`` picks slots by their index in the output."""
+    from dataclasses import replace as dc_replace
+
+    b, out = inferred
+    K = out.latents.params.z_sh.shape[1]
+    active = torch.zeros(2, K, dtype=torch.bool)
+    active[1, [0, K - 1]] = True
+    stopped = dc_replace(out, latents=dc_replace(out.latents, params=dc_replace(out.latents.params, active=active)))
+    s = LatentScene.from_output(stopped, b, 1, "x")
+    assert s.num_objects == 2 and s.bg_color.shape == (3,)
+    assert torch.equal(s.position, out.latents.params.position[1, [0, K - 1]])
+    assert torch.equal(s.bg_color, out.latents.bg_color[1])
+    picked = LatentScene.from_output(out, b, 1, "x", slots=[K - 1])
+    assert torch.equal(picked.z_sh, out.latents.params.z_sh[1, [K - 1]])

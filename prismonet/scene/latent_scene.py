@@ -82,16 +82,20 @@ class LatentScene:
 
     # -- from the model -------------------------------------------------------------------
     @staticmethod
-    def from_output(out, batch, index: int, prior_fingerprint: str = "") -> "LatentScene":
-        """Scene ``index`` of a model output ``out`` for the input ``batch`` (a ``SceneBatch``); slots
-        that a stopped encoder never decoded (``params.active`` false) are left out."""
+    def from_output(out, batch, index: int, prior_fingerprint: str = "", slots=None) -> "LatentScene":
+        """Scene ``index`` of a model output ``out`` for the input ``batch`` (a ``SceneBatch``).
+
+        ``slots``: the slot indices to take, in that order; by default every slot the encoder decoded
+        (all, less those a stopped encoder or pruning left inactive: ``params.active`` false)."""
         p, i = out.latents.params, index
         H, W = batch.rgb.shape[-2:]
         cam = Camera(batch.K[i].detach().float(), batch.T_world_cam[i].detach().float(), int(H), int(W))
-        keep = slice(None) if p.active is None else p.active[i]
-        d = lambda t: t[i][keep].detach().float().clone()
-        return LatentScene(d(p.z_sh), d(p.z_tex), d(p.position), d(p.cos_sin), d(p.scale), d(out.latents.bg_color),
-                           cam, float(batch.ground_z[i]), prior_fingerprint)
+        if slots is None:
+            slots = range(p.z_sh.shape[1]) if p.active is None else torch.nonzero(p.active[i]).flatten().tolist()
+        idx = torch.as_tensor(list(slots), dtype=torch.long)
+        d = lambda t: t[i][idx].detach().float().clone()
+        return LatentScene(d(p.z_sh), d(p.z_tex), d(p.position), d(p.cos_sin), d(p.scale),
+                           out.latents.bg_color[i].detach().float().clone(), cam, float(batch.ground_z[i]), prior_fingerprint)
 
     # -- rendering --------------------------------------------------------------------------
     def render(self, model, camera: Camera | None = None, settings: RenderSettings | None = None):
