@@ -121,7 +121,8 @@ def photo_measures(label, instance: np.ndarray, outline, photo_shape: tuple[int,
 
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
-                    objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None) -> dict:
+                    objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
+                    elevation=None) -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed."""
     from prismonet.files import read_image
@@ -130,7 +131,8 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
 
     labels = load_labels(labels_dir)
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
-                              min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit)
+                              min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
+                              elevation=elevation)
     import cv2
 
     rows = []

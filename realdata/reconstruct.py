@@ -33,12 +33,18 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
-                       metres_per_unit: float | None = None) -> list[dict]:
-    """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``)."""
+                       metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None) -> list[dict]:
+    """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``).
+
+    ``elevation``: degrees, for all photos or ``{photo stem: degrees}``: an uncalibrated photo is seen by the
+    model's training camera moved to that elevation about the table point it looks at (``orbit_elevation``),
+    e.g. about 80 for a photo taken from above. Only for models that take the camera as an input
+    (``pose_frame = "camera"``); the others know one camera."""
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.metrics import image_metrics
+    from prismonet.geometry.camera import orbit_elevation
     from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
     from prismonet.files import write_image
@@ -54,6 +60,9 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     prepared = out / "prepared"
     train_cam, train_ground = training_camera(net, info)
     own = net.cfg.pose_frame == "camera"  # a camera-frame model takes the calibrated photo camera as it is
+    if elevation is not None and not own:
+        raise ValueError("an elevation needs a model that takes the camera as an input (pose_frame camera, e.g. a "
+                         "tabletop model); this one was trained from one camera")
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
                           view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own)
     ds = SceneDataset(prepared)
@@ -64,9 +73,10 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
         b = ds.batch([i])  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
         own_cam = by_name[ds.names[i]].get("own_camera", False)
+        elev = elevation.get(ds.names[i]) if isinstance(elevation, dict) else elevation
         if not own_cam:
             b.K[:] = train_cam.K
-            b.T_world_cam[:] = train_cam.T_world_cam
+            b.T_world_cam[:] = train_cam.T_world_cam if elev is None else orbit_elevation(train_cam.T_world_cam, train_ground, elev)
         b.ground_z[:] = train_ground
         psnr = {}
 
@@ -95,7 +105,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "figure": str(fig), "scene": str(out / f"{name}.json"), "instance": str(out / f"{name}_instance.png"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "the photo's own calibrated camera" if own_cam else
                         "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
-                        else "model's training camera (assumed)", "warnings": rec.get("warnings", []),
+                        else "model's training camera (assumed)" if elev is None
+                        else f"model's training camera moved to {elev:g} deg elevation (assumed)", "warnings": rec.get("warnings", []),
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results

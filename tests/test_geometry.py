@@ -200,3 +200,28 @@ def test_clevr_camera_fills_image_with_placement_area():
     extent = (uv - 31.5).abs().max().item()
     assert extent == pytest.approx(32.0, abs=1e-3)
     assert torch.allclose(cam.world_to_pixels(torch.zeros(1, 3)), torch.tensor([[31.5, 31.5]]), atol=1e-3)
+
+
+def test_orbit_elevation_keeps_target_distance_and_heading():
+    """A CLEVR camera moved to 75 degrees: its axis meets the ground at the same point from the same
+    distance and heading, at exactly 75 degrees; moved to its own elevation it is unchanged."""
+    from prismonet.geometry.camera import orbit_elevation
+
+    T = clevr_camera(ClevrConfig()).T_world_cam.double()
+    eye, axis = T[:3, 3], T[:3, 2]
+    own = math.degrees(math.asin(-float(axis[2])))
+    assert torch.allclose(orbit_elevation(T, 0.0, own), T, atol=1e-9)
+    T2 = orbit_elevation(T, 0.0, 75.0)
+    eye2, axis2 = T2[:3, 3], T2[:3, 2]
+    assert math.degrees(math.asin(-float(axis2[2]))) == pytest.approx(75.0, abs=1e-9)
+    t, t2 = -eye[2] / axis[2], -eye2[2] / axis2[2]
+    assert float(t2) == pytest.approx(float(t), abs=1e-9)  # the same distance to the ground point
+    assert torch.allclose(eye + t * axis, eye2 + t2 * axis2, atol=1e-9)  # the same ground point
+    heading = lambda e, a: math.atan2(float(-a[1]), float(-a[0]))
+    assert heading(eye2, axis2) == pytest.approx(heading(eye, axis), abs=1e-9)
+    assert torch.allclose(T2[:3, :3] @ T2[:3, :3].T, torch.eye(3, dtype=T2.dtype), atol=1e-12)
+    for bad in (0.0, 90.0, -5.0):
+        with pytest.raises(ValueError, match="elevation"):
+            orbit_elevation(T, 0.0, bad)
+    with pytest.raises(ValueError, match="look down"):
+        orbit_elevation(T, 100.0, 45.0)

@@ -257,3 +257,31 @@ def test_real_reconstruct_with_dropped_slots_saves_the_kept_ones(tmp_path, how):
     scene = LatentScene.load(r["scene"])
     assert r["finite"] and scene.bg_color.shape == (3,)
     assert r["objects_found"] <= scene.num_objects <= 3
+
+
+def test_real_reconstruct_elevation_moves_the_assumed_camera(tmp_path, capsys):
+    """``--elevation``: an uncalibrated photo is decoded from the training camera moved to that elevation
+    (the saved scene's camera looks down at exactly 80 degrees); a model that knows one camera refuses it."""
+    import json
+    import math
+    from dataclasses import replace
+
+    from prismonet.cli import main
+    from prismonet.model.io import load_model, save_model
+    from prismonet.model.prismonet import PriSMONet
+
+    net, info = load_model("shipped")
+    cam_net = PriSMONet(replace(net.cfg, pose_frame="camera"))
+    cam_net.load_state_dict(net.state_dict())
+    save_model(cam_net, tmp_path / "cam_model", {k: v for k, v in info.items() if k.startswith("camera") or k == "ground_z"})
+    photo = str(SAMPLES / "stuff.jpg")
+    assert main(["real", "reconstruct", photo, "--model", str(tmp_path / "cam_model"), "--elevation", "80",
+                 "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    (row,) = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert row["camera"] == "model's training camera moved to 80 deg elevation (assumed)" and row["finite"]
+    T = np.asarray(json.loads((tmp_path / "r" / "stuff.json").read_text())["camera"]["T_world_cam"])
+    assert math.degrees(math.asin(-T[2, 2])) == pytest.approx(80.0, abs=1e-4)
+    capsys.readouterr()
+    assert main(["real", "reconstruct", photo, "--elevation", "80", "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "takes the camera as an input" in err[0], err

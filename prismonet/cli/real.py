@@ -57,7 +57,8 @@ def cmd_reconstruct(args) -> int:
     box, gain = box_and_gain(args)
     cfg = inference_config(args, has_depth=False)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
-                              args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit)
+                              args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
+                              elevation=args.elevation)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
@@ -76,7 +77,8 @@ def cmd_evaluate(args) -> int:
     box, gain = box_and_gain(args)
     cfg = inference_config(args, has_depth=False)
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
-                             args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit)
+                             args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
+                             elevation=args.elevation)
     print(format_real_table(result))
     print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
@@ -130,9 +132,12 @@ def add_parsers(sub) -> None:
 
 
 def _add_model_args(p: argparse.ArgumentParser) -> None:
-    from prismonet.files import arg_int
+    from prismonet.files import arg_float, arg_int
 
     p.add_argument("--camera", help="calibration YAML; with a ground pose the photos are rectified to the model's view")
     p.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
     p.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
+    p.add_argument("--elevation", type=arg_float(0.0, 89.0, positive=True), metavar="DEG",
+                   help="uncalibrated photos: the camera's elevation above the table, by eye (about 80 from above); the "
+                        "training camera is moved to it. Only models that take the camera as an input (e.g. a tabletop model)")
     p.add_argument("--quiet", action="store_true")

@@ -119,6 +119,32 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor | None = N
     return T
 
 
+def orbit_elevation(T_world_cam: torch.Tensor, ground_z: float, elevation_deg: float) -> torch.Tensor:
+    """``T_world_cam`` ``(4, 4)`` of a level camera moved to another elevation about the ground point it looks at.
+
+    The camera keeps that point (where its optical axis meets the plane ``z = ground_z``), its distance
+    to it and its heading; ``elevation_deg`` is the angle between the optical axis and the ground, in
+    (0, 90). The result is ``look_at``'s camera (no roll). For a camera whose axes fix no heading
+    (looking straight down) it raises.
+    """
+    import math
+
+    if not 0.0 < elevation_deg < 90.0:
+        raise ValueError(f"elevation must be in (0, 90) degrees, got {elevation_deg}")
+    T = T_world_cam.double()
+    eye, axis = T[:3, 3], T[:3, 2]
+    if axis[2] >= -1e-6 or eye[2] <= ground_z:
+        raise ValueError("orbit_elevation: the camera must be above the ground and look down at it")
+    dist = float((ground_z - eye[2]) / axis[2])
+    target = eye + dist * axis
+    back = eye[:2] - target[:2]
+    if back.norm() < 1e-9:
+        raise ValueError("orbit_elevation: a camera looking straight down has no heading to keep")
+    az, e = math.atan2(float(back[1]), float(back[0])), math.radians(elevation_deg)
+    new_eye = target + dist * torch.tensor([math.cos(e) * math.cos(az), math.cos(e) * math.sin(az), math.sin(e)], dtype=T.dtype)
+    return look_at(new_eye, target).to(T_world_cam.dtype)
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera with its pose.
