@@ -33,6 +33,22 @@ def test_distill_loss_hand_computed():
     assert float(distill_loss(p, bg, t, torch.zeros(1), w)) == 0.0  # no targets for this scene
 
 
+def test_distill_loss_regresses_only_the_slots_the_fit_shows():
+    """With ``visible``, a hidden slot's target is ignored whatever it is; a scene showing none keeps only
+    its background term."""
+    two = SceneParams(torch.zeros(1, 2, 8), torch.zeros(1, 2, 2), torch.zeros(1, 2, 3), torch.tensor([[[1.0, 0.0]] * 2]),
+                      torch.tensor([[0.5, 0.5]]))
+    t = {"scale": torch.tensor([[0.7, 9.0]]), "position": torch.zeros(1, 2, 3), "cos_sin": torch.tensor([[[1.0, 0.0]] * 2]),
+         "z_tex": torch.zeros(1, 2, 2), "bg_color": torch.tensor([[0.5, 0.5, 0.5]]), "visible": torch.tensor([[300.0, 24.0]])}
+    bg = torch.tensor([[0.5, 0.5, 0.6]])
+    w = DistillWeights(scale=1.0, background=1.0)
+    assert float(distill_loss(two, bg, t, torch.ones(1), w)) == pytest.approx(0.2 + 0.1, rel=1e-6)  # slot 2 (24 px) left out
+    t["visible"] = torch.tensor([[0.0, 0.0]])
+    assert float(distill_loss(two, bg, t, torch.ones(1), w)) == pytest.approx(0.1, rel=1e-6)
+    del t["visible"]  # targets made before the field: every slot
+    assert float(distill_loss(two, bg, t, torch.ones(1), w)) == pytest.approx((0.2 + 8.5) / 2 + 0.1, rel=1e-6)
+
+
 def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.io import load_model
@@ -52,6 +68,7 @@ def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
     assert (tmp_path / "t" / files[1]).is_file()
     t = DistillTargets(tmp_path / "t", num_slots=3)
     assert t.count == 3 and tuple(t.t["position"].shape) == (3, 3, 3) and tuple(t.t["bg_color"].shape) == (3, 3)
+    assert tuple(t.t["visible"].shape) == (3, 3) and float(t.t["visible"].sum()) > 0  # pixels each fitted slot wins
     tg, mask = t.lookup(torch.tensor([2, 0, 7]))
     assert mask.tolist() == [1.0, 1.0, 0.0] and torch.equal(tg["scale"][0], t.t["scale"][2])
     with pytest.raises(DistillError, match="other settings"):

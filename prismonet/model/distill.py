@@ -25,6 +25,12 @@ CHUNK = 256
 """Scenes per target file."""
 
 FIELDS = ("scale", "position", "cos_sin", "z_tex", "bg_color")
+VISIBLE = "visible"
+"""An optional field: ``(K,)`` pixels of the fitted render each slot wins (targets made before it existed
+lack it; then every slot is a target)."""
+MIN_VISIBLE = 25
+"""A slot is a target only where the fit shows at least this many of its pixels (the metrics' visibility
+rule): a hidden slot's fitted pose is arbitrary, and regressing onto it pulls the encoder off the objects."""
 
 
 class DistillError(ValueError):
@@ -60,7 +66,7 @@ class DistillTargets:
         info = json.loads(info_path.read_text())
         if info.get("num_slots") != num_slots:
             raise DistillError(f"{root}: targets for {info.get('num_slots')} slots, the model has {num_slots}")
-        parts: dict[str, list[torch.Tensor]] = {k: [] for k in FIELDS}
+        parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, VISIBLE)}
         for i in range(0, info["count"], info["chunk"]):
             f = root / f"chunk_{i // info['chunk']:05d}.safetensors"
             if not f.is_file():
@@ -68,8 +74,12 @@ class DistillTargets:
             tensors, _ = load_checkpoint(f)
             for k in FIELDS:
                 parts[k].append(tensors[k])
+            if VISIBLE in tensors:
+                parts[VISIBLE].append(tensors[VISIBLE])
         if not parts["scale"]:
             raise DistillError(f"{root}: no finished chunk of targets yet")
+        if len(parts[VISIBLE]) != len(parts["scale"]):  # none, or older chunks without it: every slot a target
+            del parts[VISIBLE]
         self.t = {k: torch.cat(v) for k, v in parts.items()}
         self.count = len(self.t["scale"])
 
@@ -83,14 +93,20 @@ class DistillTargets:
 def distill_loss(params, bg_color: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
                  w: DistillWeights = DistillWeights()) -> torch.Tensor:
     """``()``: the weighted regression of the decoded slots onto their targets, mean over the scenes
-    that have targets (``mask``); 0 when none has."""
+    that have targets (``mask``); 0 when none has. With ``targets["visible"]``, each scene's slot terms
+    are the mean over its slots that the fit shows (``MIN_VISIBLE`` pixels or more), 0 if it shows none."""
     cs = params.cos_sin / params.cos_sin.norm(dim=-1, keepdim=True).clamp_min(1e-6)
     ct = targets["cos_sin"] / targets["cos_sin"].norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    per_scene = (
-        w.position * (params.position - targets["position"]).abs().sum(-1).mean(1)
-        + w.scale * (params.scale - targets["scale"]).abs().mean(1)
-        + w.rotation * (1 - (cs * ct).sum(-1)).mean(1)
-        + w.texture * ((params.z_tex - targets["z_tex"]) ** 2).sum(-1).mean(1)
-        + w.background * (bg_color - targets["bg_color"]).abs().sum(-1)
-    )
+    per_slot = (
+        w.position * (params.position - targets["position"]).abs().sum(-1)
+        + w.scale * (params.scale - targets["scale"]).abs()
+        + w.rotation * (1 - (cs * ct).sum(-1))
+        + w.texture * ((params.z_tex - targets["z_tex"]) ** 2).sum(-1)
+    )  # (B, K)
+    if VISIBLE in targets:
+        seen = (targets[VISIBLE] >= MIN_VISIBLE).to(per_slot.dtype)
+        slots = (per_slot * seen).sum(1) / seen.sum(1).clamp_min(1.0)
+    else:
+        slots = per_slot.mean(1)
+    per_scene = slots + w.background * (bg_color - targets["bg_color"]).abs().sum(-1)
     return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)

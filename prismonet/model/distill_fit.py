@@ -66,7 +66,7 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         path = out / f"chunk_{c0 // distill.CHUNK:05d}.safetensors"
         if path.is_file():
             continue
-        rows: dict[str, list[torch.Tensor]] = {k: [] for k in FIELDS}
+        rows: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, distill.VISIBLE)}
         for s in range(c0, min(c0 + distill.CHUNK, count), batch_size):
             b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count))))
 
@@ -78,8 +78,10 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
             with torch.no_grad():
                 after.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
             p = o.latents.params
+            K = p.scale.shape[1]
+            won = torch.stack([(o.composite.instance == k + 1).flatten(1).sum(1) for k in range(K)], 1)  # (B, K) pixels
             for k, v in (("scale", p.scale), ("position", p.position), ("cos_sin", p.cos_sin), ("z_tex", p.z_tex),
-                         ("bg_color", o.latents.bg_color)):
+                         ("bg_color", o.latents.bg_color), (distill.VISIBLE, won)):
                 rows[k].append(v.detach().float())
         save_checkpoint(path, {k: torch.cat(v) for k, v in rows.items()}, {"first": c0})
     summary = {"scenes": count, "chunks": len(chunks)}
