@@ -55,6 +55,8 @@ def test_data_commands(tmp_path, capsys):
         (["data", "sheet", "{tmp}/nothing", "--out", "{tmp}/s.png"], "no such dataset folder"),
         (["data", "verify", "{tmp}"], "not a packed dataset"),
         (["demo", "--out", "{tmp}/d", "--search", "-1"], "rounds and weights must be non-negative"),
+        (["demo", "--out", "{tmp}/d", "--search-scales", "0.9,x"], "--search-scales: expected comma-separated finite numbers"),
+        (["demo", "--out", "{tmp}/d", "--search-scales", "0.8,-1"], "scales positive"),
     ],
 )
 def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys, argv, message):

@@ -109,3 +109,12 @@ def test_command_line_functions_stay_short():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 60:
                 long.append(f"{path.name}:{node.name} ({node.end_lineno - node.lineno + 1} lines)")
     assert not long, long
+
+
+def test_search_scales_reach_the_search_and_its_description():
+    from prismonet.model.inference import InferenceConfig
+
+    cfg = InferenceConfig.of(search=2, search_scales=(0.8, 1.25))
+    assert cfg.search.scales == (0.8, 1.25) and cfg.search.rounds == 2
+    assert cfg.describe() == "encoder, then 2 pose-search rounds (scales 0.8, 1.25)"
+    assert InferenceConfig.of(search=2).describe() == "encoder, then 2 pose-search rounds"
