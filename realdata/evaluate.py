@@ -124,12 +124,20 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
                     elevation=None) -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
-    (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed."""
+    (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
+    ``elevation`` (degrees, see ``reconstruct_photos``): by default the labels' ``elevation_deg`` where they
+    give one, for models that take the camera as an input."""
     from prismonet.files import read_image
     from realdata.labels import load_labels
     from realdata.reconstruct import reconstruct_photos
 
     labels = load_labels(labels_dir)
+    if elevation is None:  # the labels' elevations by eye, for a model that takes the camera as an input
+        from prismonet.model.io import load_model
+
+        hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None}
+        if hints and load_model(model)[0].cfg.pose_frame == "camera":
+            elevation = hints
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
                               elevation=elevation)
@@ -140,7 +148,7 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
         inst = read_image(rec["instance"], cv2.IMREAD_UNCHANGED)
         shape = read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2]
         m = photo_measures(lab, inst, rec["prepare"]["outline"], shape, min_pixels)
-        m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"])
+        m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"])
         rows.append(m)
     ap, ar = ap_ar(np.concatenate([r["scores"] for r in rows]), np.concatenate([r["hits"] for r in rows]).astype(bool),
                    sum(r["true_objects"] for r in rows))

@@ -1,6 +1,8 @@
 """Labelled real photos: one JSON per photo, ``{"photo": PATH (relative to the JSON), "objects":
 [{"box": [x0, y0, x1, y1], "colour": WORD, "kind": WORD}, ...]}``, boxes in photo pixels (the
-outermost pixels' corners). ``realdata/samples/labels/`` holds the shipped photos' labels."""
+outermost pixels' corners), and optionally ``"elevation_deg"``: the camera's elevation above the table,
+judged by eye (for uncalibrated photos and models that take the camera as an input).
+``realdata/samples/labels/`` holds the shipped photos' labels."""
 
 from __future__ import annotations
 
@@ -19,6 +21,8 @@ class LabelledPhoto:
     boxes: tuple[tuple[float, float, float, float], ...]
     words: tuple[tuple[str, str], ...]
     """``(colour, kind)`` per object."""
+    elevation_deg: float | None = None
+    """The camera's elevation above the table by eye, in (0, 90), if the label gives one."""
 
 
 def _box(value, where: str) -> tuple[float, float, float, float]:
@@ -51,7 +55,10 @@ def load_label(path: str | Path) -> LabelledPhoto:
             raise LabelError(f"{path}: object {i} is not a JSON object")
         boxes.append(_box(o.get("box"), f"{path}: object {i}"))
         words.append((str(o.get("colour", "")), str(o.get("kind", ""))))
-    return LabelledPhoto(path, photo, tuple(boxes), tuple(words))
+    elev = d.get("elevation_deg")
+    if elev is not None and not (isinstance(elev, (int, float)) and not isinstance(elev, bool) and 0 < elev < 90):
+        raise LabelError(f"{path}: elevation_deg must be a number of degrees in (0, 90), got {elev!r}")
+    return LabelledPhoto(path, photo, tuple(boxes), tuple(words), None if elev is None else float(elev))
 
 
 def load_labels(folder: str | Path) -> list[LabelledPhoto]:

@@ -45,6 +45,7 @@ def test_shipped_labels_load():
     assert [lab.photo.name for lab in labels] == ["blox.jpg", "coffee.jpg", "coins.png", "smarties.png", "stuff.jpg"]
     assert [len(lab.boxes) for lab in labels] == [9, 3, 24, 14, 5]
     assert all(w[0] and w[1] for lab in labels for w in lab.words)
+    assert [lab.elevation_deg for lab in labels] == [30.0, 55.0, 85.0, 85.0, 85.0]
 
 
 def test_bad_labels_are_refused(tmp_path):
@@ -56,6 +57,10 @@ def test_bad_labels_are_refused(tmp_path):
     for objects, words in (([{"box": [1, 2, 3]}], "four finite"), ([{"box": [5, 5, 1, 9]}], "x1 > x0"), (["a"], "not a JSON object")):
         f.write_text(json.dumps({"photo": "p.jpg", "objects": objects}))
         with pytest.raises(LabelError, match=words):
+            load_label(f)
+    for elev in (0, 90, "80", True):
+        f.write_text(json.dumps({"photo": "p.jpg", "objects": [], "elevation_deg": elev}))
+        with pytest.raises(LabelError, match="elevation_deg must be"):
             load_label(f)
     (tmp_path / "empty").mkdir()
     with pytest.raises(LabelError, match="no photo labels"):
@@ -73,3 +78,31 @@ def test_real_evaluate_on_the_shipped_photos(tmp_path, capsys):
     r = json.loads((tmp_path / "e" / "real_evaluation.json").read_text())
     assert len(r["photos"]) == 5 and 0 <= r["overall"]["box_AP0.5"] <= 1 and 0 <= r["overall"]["foreground_IoU"] <= 1
     assert all(Path(p["figure"]).is_file() for p in r["photos"])
+
+
+def test_real_evaluate_hands_the_labels_elevations_to_a_camera_frame_model(tmp_path):
+    """A model that takes the camera as an input sees each uncalibrated photo from its label's elevation;
+    ``--elevation`` overrides them; a one-camera model ignores them (it knows one view)."""
+    from dataclasses import replace
+
+    from prismonet.model.io import load_model, save_model
+    from prismonet.model.prismonet import PriSMONet
+    from realdata.evaluate import evaluate_photos
+
+    net, info = load_model("shipped")
+    cam_net = PriSMONet(replace(net.cfg, pose_frame="camera"))
+    cam_net.load_state_dict(net.state_dict())
+    save_model(cam_net, tmp_path / "cam_model", {k: v for k, v in info.items() if k.startswith("camera") or k == "ground_z"})
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    for name in ("coffee", "stuff"):
+        d = json.loads((LABELS / f"{name}.json").read_text())
+        d["photo"] = str((LABELS / d["photo"]).resolve())
+        (labels / f"{name}.json").write_text(json.dumps(d))
+    cams = lambda r: [p["camera"] for p in r["photos"]]
+    r = evaluate_photos(labels, tmp_path / "a", tmp_path / "cam_model", progress=False)
+    assert cams(r) == [f"model's training camera moved to {e} deg elevation (assumed)" for e in (55, 85)]
+    r = evaluate_photos(labels, tmp_path / "b", tmp_path / "cam_model", progress=False, elevation=40.0)
+    assert cams(r) == ["model's training camera moved to 40 deg elevation (assumed)"] * 2
+    r = evaluate_photos(labels, tmp_path / "c", "shipped", progress=False)
+    assert cams(r) == ["model's training camera (assumed)"] * 2
