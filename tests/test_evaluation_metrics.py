@@ -9,6 +9,7 @@ from prismonet.evaluation.metrics import (
     adjusted_rand_index,
     angle_error,
     ari_metrics,
+    count_breakdown,
     depth_metrics,
     detection_metrics,
     image_metrics,
@@ -68,6 +69,19 @@ def test_unfiltered_counts_predicted_slivers():
     assert m["F1_0.5_unfiltered"] == pytest.approx(0.8) and m["allObj_unfiltered"] == 1.0
     assert m["mAP_unfiltered"] == pytest.approx(2 / 3)
     assert scene_detection(pred, gt, 0.5, pred_min_pixels=1)["n_pred"] == 3
+
+
+def test_count_breakdown_hand_computed():
+    """Rows by the number of visible true objects: a 1-object scene found, and two 2-object scenes with
+    one and both found (one with a false detection)."""
+    one = scene([(0, 10, 0, 10)])
+    two = scene([(0, 10, 0, 10), (20, 30, 20, 30)])
+    pred = np.stack([one, scene([(0, 10, 0, 10)]), scene([(0, 10, 0, 10), (20, 30, 20, 30), (12, 18, 0, 8)])])
+    rows = count_breakdown(pred, np.stack([one, two, two]))
+    assert [(r["objects"], r["scenes"]) for r in rows] == [(1, 1), (2, 2)]
+    assert rows[0]["AP0.5"] == 1.0 and rows[0]["AR0.5"] == 1.0 and rows[0]["count_exact"] == 1.0
+    assert rows[1]["AR0.5"] == pytest.approx(0.75) and rows[1]["AP0.5"] == pytest.approx((1.0 + 2 / 3) / 2)
+    assert rows[1]["count_exact"] == 0.0 and rows[1]["count_bias"] == 0.0  # one short, one over
 
 
 def test_ari_matches_scikit_learn():

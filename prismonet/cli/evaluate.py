@@ -29,7 +29,7 @@ def cmd_demo(args) -> int:
 
 def cmd_evaluate(args) -> int:
     from prismonet.data.dataset import SceneDataset
-    from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_steps, format_table
+    from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_counts, format_steps, format_table
     from prismonet.model.io import load_model, training_loss_config
 
     cfg = inference_config(args)  # validates every step's settings before any work
@@ -47,6 +47,8 @@ def cmd_evaluate(args) -> int:
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")
           + f"; depth RMSE of the empty ground {results['depth_RMSE_empty']:.3f}")
     print("\nper encoder step:\n" + format_steps(results))
+    if len(results["by_count"]) > 1:
+        print("\nper number of visible objects:\n" + format_counts(results))
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
         print(f"wrote {args.json}")

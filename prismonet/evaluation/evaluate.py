@@ -10,6 +10,7 @@ import torch
 from prismonet.evaluation.metrics import (
     angle_error,
     ari_metrics,
+    count_breakdown,
     count_metrics,
     depth_metrics,
     detection_metrics,
@@ -178,6 +179,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record()}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
     results.update(count_metrics(cat(pred_inst), cat(gt_inst)))
+    results["by_count"] = count_breakdown(cat(pred_inst), cat(gt_inst))
     results.update(image_metrics(cat(pred_img), cat(gt_img)))
     results.update(depth_metrics(cat(pred_d), cat(gt_d)))
     results["depth_RMSE_empty"] = depth_metrics(cat(empty_d), cat(gt_d))["depth_RMSE"]  # the ground alone (the paper's 6-DoF table)
@@ -214,6 +216,15 @@ def format_steps(results: dict) -> str:
     lines = ["| step | visible | precision@0.5 | pos | scale pred/true |", "|---|---|---|---|---|"]
     for st in results["per_step"]:
         lines.append(f"| {st['step']} | {st['visible']:.3f} | {st['precision']:.3f} | {st['pos_err']:.3f} | {st['scale_ratio']:.3f} |")
+    return "\n".join(lines)
+
+
+def format_counts(results: dict) -> str:
+    """A Markdown table of ``results["by_count"]``: one row per number of visible objects."""
+    lines = ["| objects | scenes | AP0.5 | AR0.5 | AP0.5 unf. | count right | count bias |", "|---|---|---|---|---|---|---|"]
+    for r in results["by_count"]:
+        lines.append(f"| {r['objects']} | {r['scenes']} | {r['AP0.5']:.3f} | {r['AR0.5']:.3f} | {r['AP0.5_unfiltered']:.3f} | "
+                     f"{r['count_exact']:.3f} | {r['count_bias']:+.2f} |")
     return "\n".join(lines)
 
 
