@@ -17,6 +17,12 @@ TABLE_QUANT = 16
 """Colour bins per channel for finding the dominant (table) colour."""
 MIN_CHANNEL = 1e-3
 """Channels darker than this are not scaled up (no division by ~0)."""
+MAX_GAIN = 4.0
+"""No channel is scaled by more than this or less than its inverse: a table that dark or that bright is
+more likely a misread (e.g. a saucer taken for the table) than a table."""
+MAX_TINT = 2.0
+"""The largest channel gain is at most this times the smallest: the mapping corrects a tint, it does not
+turn a deep red into grey."""
 
 
 @dataclass(frozen=True)
@@ -43,7 +49,21 @@ def estimate_table_color(image: np.ndarray) -> np.ndarray:
 
 
 def table_mapping(table_rgb: np.ndarray, target_rgb: np.ndarray) -> ColorMapping:
-    """The per-channel gain that maps the table colour exactly onto the target."""
+    """The per-channel gain that maps the table colour exactly onto the target, within ``MAX_GAIN`` and
+    ``MAX_TINT`` (see ``mapping_limited`` for whether they bound it)."""
     t = np.maximum(np.asarray(table_rgb, np.float64), MIN_CHANNEL)
-    gain = np.asarray(target_rgb, np.float64) / t
+    log_g = np.log(np.asarray(target_rgb, np.float64) / t)
+    spread, limit = log_g.max() - log_g.min(), np.log(MAX_TINT)
+    if spread > limit:  # shrink the tint about the channels' mean in log space
+        mid = log_g.mean()
+        log_g = mid + (log_g - mid) * (limit / spread)
+    cap = np.log(MAX_GAIN)  # then shift all channels alike into [1/MAX_GAIN, MAX_GAIN] (the tint, <= MAX_TINT, fits)
+    log_g = log_g - max(log_g.max() - cap, 0.0) + max(-cap - log_g.min(), 0.0)
+    gain = np.exp(log_g)
     return ColorMapping(tuple(gain.tolist()), (0.0, 0.0, 0.0))
+
+
+def mapping_limited(table_rgb: np.ndarray, target_rgb: np.ndarray, mapping: ColorMapping) -> bool:
+    """Whether ``mapping`` (from ``table_mapping``) misses mapping the table exactly onto the target."""
+    t = np.maximum(np.asarray(table_rgb, np.float64), MIN_CHANNEL)
+    return not np.allclose(np.asarray(mapping.gain) * t, np.asarray(target_rgb, np.float64), rtol=1e-9, atol=1e-12)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from prismonet.files import write_image
-from realdata.color import ColorMapping, estimate_table_color, table_mapping
+from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, table_mapping
 from realdata.io import PhotoError, load_photo
 from realdata.prepare import auto_table_box, crop, resize, undistort
 
@@ -69,7 +69,9 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             img, cam, placed = _rectified(p, img, cal, T, view, size, metres_per_unit)
         else:
             img, cam, placed = _cropped(p, img, cal, box, size)
-        mapping = _color_mapping(img, normalize, gain, target)
+        mapping, note = _color_mapping(img, normalize, gain, target)
+        if note:
+            placed["warnings"] = [*placed.get("warnings", []), note]
         img = mapping.apply(img)
         name = Path(p).stem
         write_image(out / "rgb" / f"{name}.png", (np.clip(img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
@@ -170,9 +172,16 @@ def _own_camera(p, img, cal, T, view, size, metres_per_unit):
                       "warnings": camera_warnings(world)}
 
 
-def _color_mapping(img, normalize, gain, target) -> ColorMapping:
+def _color_mapping(img, normalize, gain, target) -> tuple[ColorMapping, str | None]:
+    """The mapping, and a warning when the automatic one could not reach the target within its limits."""
     if normalize == "auto":
-        return table_mapping(estimate_table_color(img), np.asarray(target) / 255.0)
+        table, goal = estimate_table_color(img), np.asarray(target) / 255.0
+        m = table_mapping(table, goal)
+        if mapping_limited(table, goal, m):
+            return m, (f"the table colour read off the photo, RGB ({', '.join(f'{255 * v:.0f}' for v in table)}), is too far from "
+                       f"the training ground's to map onto it (gain limited to {MAX_GAIN:g}x, tint to {MAX_TINT:g}x); "
+                       "check --box, or pass --normalize manual --gain r,g,b")
+        return m, None
     if normalize == "manual":
-        return ColorMapping(tuple(gain), (0.0, 0.0, 0.0))
-    return ColorMapping((1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+        return ColorMapping(tuple(gain), (0.0, 0.0, 0.0)), None
+    return ColorMapping((1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), None

@@ -10,7 +10,7 @@ import torch
 
 from prismonet.model.inference import InferenceConfig
 from prismonet.geometry.camera import Camera, intrinsics_matrix, project
-from realdata.color import ColorMapping, estimate_table_color, table_mapping
+from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, table_mapping
 from realdata.io import PhotoError, load_photo
 from realdata.prepare import center_square, crop, resize, undistort
 
@@ -118,6 +118,31 @@ def test_table_colour_and_mapping():
     out = m.apply(img)
     assert np.allclose(estimate_table_color(out), 150 / 255, atol=0.01)
     assert ColorMapping(**m.to_dict()) == m  # recordable
+
+
+def test_table_mapping_is_limited_for_an_implausible_table(tmp_path):
+    """A deep red 'table' (e.g. a saucer read as the table) is not mapped onto grey by gains of 30-80: the
+    tint is shrunk in log space to MAX_TINT about its mean, each gain kept within MAX_GAIN, and the
+    photo's record gets a warning; a plausible table is mapped exactly and gets none."""
+    goal = np.full(3, 150 / 255)
+    red = np.array([0.15, 0.017, 0.0075])
+    m = table_mapping(red, goal)
+    g = np.asarray(m.gain)
+    assert g.max() / g.min() == pytest.approx(MAX_TINT) and g.max() <= MAX_GAIN + 1e-12 and g.min() >= 1 / MAX_GAIN - 1e-12
+    assert g.max() == pytest.approx(MAX_GAIN)  # the table is far too dark: the brightest gain at the cap
+    assert np.argsort(g).tolist() == np.argsort(goal / red).tolist()  # the channels keep their order
+    assert mapping_limited(red, goal, m)
+    ok = np.array([0.55, 0.45, 0.35])
+    assert not mapping_limited(ok, goal, table_mapping(ok, goal))
+    assert np.allclose(np.asarray(table_mapping(ok, goal).gain) * ok, goal)
+    # through prepare: the warning lands in the record
+    from realdata.pipeline import prepare_photos
+
+    img = np.zeros((128, 128, 3), np.uint8)
+    img[:] = (2, 4, 38)  # BGR: a deep red everywhere
+    cv2.imwrite(str(tmp_path / "red.png"), img)
+    (rec,) = prepare_photos([tmp_path / "red.png"], tmp_path / "out")
+    assert any("too far from the training ground" in w for w in rec["warnings"])
 
 
 def test_auto_table_box_finds_the_table():
