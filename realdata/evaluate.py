@@ -122,17 +122,17 @@ def photo_measures(label, instance: np.ndarray, outline, photo_shape: tuple[int,
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
-                    elevation=None) -> dict:
+                    elevation=None, label_elevations: bool = False) -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
-    ``elevation`` (degrees, see ``reconstruct_photos``): by default the labels' ``elevation_deg`` where they
-    give one, for models that take the camera as an input."""
+    ``elevation`` (degrees, see ``reconstruct_photos``); or with ``label_elevations`` each label's
+    ``elevation_deg`` where it gives one (for models that take the camera as an input; ignored by others)."""
     from prismonet.files import read_image
     from realdata.labels import load_labels
     from realdata.reconstruct import reconstruct_photos
 
     labels = load_labels(labels_dir)
-    if elevation is None:  # the labels' elevations by eye, for a model that takes the camera as an input
+    if label_elevations and elevation is None:  # the labels' elevations by eye, for a model that takes the camera as an input
         from prismonet.model.io import load_model
 
         hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None}

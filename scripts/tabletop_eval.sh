@@ -15,4 +15,6 @@ ev data/clevr1to8 --split test --limit 500 --quiet --json "runs/${name}_eval_1to
 python3 scripts/ladder.py --ladder data/ladder --base data/clevr3 --limit 500 --model "$run" --out "runs/ladder_${name}" > "runs/${name}_ladder.txt" 2>&1
 python3 -m prismonet real evaluate realdata/samples/labels --model "$run" --out "runs/real_eval_${name}" --quiet > "runs/${name}_real.txt" 2>&1
 python3 -m prismonet real evaluate realdata/samples/labels --model "$run" --out "runs/real_eval_${name}_fit" --search 3 --fit-color 50 --prune --quiet > "runs/${name}_real_fit.txt" 2>&1
+python3 -m prismonet real evaluate realdata/samples/labels --model "$run" --out "runs/real_eval_${name}_elev" --label-elevations --quiet > "runs/${name}_real_elev.txt" 2>&1
+python3 -m prismonet real evaluate realdata/samples/labels --model "$run" --out "runs/real_eval_${name}_elev_fit" --label-elevations --search 3 --fit-color 50 --prune --quiet > "runs/${name}_real_elev_fit.txt" 2>&1
 echo done > "runs/${name}_eval.done"

@@ -81,8 +81,8 @@ def test_real_evaluate_on_the_shipped_photos(tmp_path, capsys):
 
 
 def test_real_evaluate_hands_the_labels_elevations_to_a_camera_frame_model(tmp_path):
-    """A model that takes the camera as an input sees each uncalibrated photo from its label's elevation;
-    ``--elevation`` overrides them; a one-camera model ignores them (it knows one view)."""
+    """Asked to, a model that takes the camera as an input sees each uncalibrated photo from its label's
+    elevation; ``--elevation`` overrides them; a one-camera model ignores them (it knows one view)."""
     from dataclasses import replace
 
     from prismonet.model.io import load_model, save_model
@@ -100,9 +100,11 @@ def test_real_evaluate_hands_the_labels_elevations_to_a_camera_frame_model(tmp_p
         d["photo"] = str((LABELS / d["photo"]).resolve())
         (labels / f"{name}.json").write_text(json.dumps(d))
     cams = lambda r: [p["camera"] for p in r["photos"]]
-    r = evaluate_photos(labels, tmp_path / "a", tmp_path / "cam_model", progress=False)
+    r = evaluate_photos(labels, tmp_path / "a", tmp_path / "cam_model", progress=False, label_elevations=True)
     assert cams(r) == [f"model's training camera moved to {e} deg elevation (assumed)" for e in (55, 85)]
-    r = evaluate_photos(labels, tmp_path / "b", tmp_path / "cam_model", progress=False, elevation=40.0)
+    r = evaluate_photos(labels, tmp_path / "b", tmp_path / "cam_model", progress=False, elevation=40.0, label_elevations=True)
     assert cams(r) == ["model's training camera moved to 40 deg elevation (assumed)"] * 2
-    r = evaluate_photos(labels, tmp_path / "c", "shipped", progress=False)
+    r = evaluate_photos(labels, tmp_path / "d", tmp_path / "cam_model", progress=False)  # not asked: the training camera
+    assert cams(r) == ["model's training camera (assumed)"] * 2
+    r = evaluate_photos(labels, tmp_path / "c", "shipped", progress=False, label_elevations=True)
     assert cams(r) == ["model's training camera (assumed)"] * 2

@@ -78,7 +78,7 @@ def cmd_evaluate(args) -> int:
     cfg = inference_config(args, has_depth=False)
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                             elevation=args.elevation)
+                             elevation=args.elevation, label_elevations=args.label_elevations)
     print(format_real_table(result))
     print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
@@ -127,6 +127,8 @@ def add_parsers(sub) -> None:
     re.add_argument("labels", help="folder of photo labels (e.g. realdata/samples/labels)")
     _add_photo_args(re, photos=False)
     _add_model_args(re)
+    re.add_argument("--label-elevations", action="store_true",
+                    help="see each photo from its label's elevation_deg (by eye; models that take the camera as an input)")
     add_inference_args(re, depth=False)
     re.set_defaults(func=cmd_evaluate, outputs=[("out", "dir")])
 
@@ -139,6 +141,5 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
     p.add_argument("--elevation", type=arg_float(0.0, 89.0, positive=True), metavar="DEG",
                    help="uncalibrated photos: the camera's elevation above the table, by eye (about 80 from above); the "
-                        "training camera is moved to it (real evaluate: by default each label's elevation_deg). Only models that "
-                        "take the camera as an input (e.g. a tabletop model)")
+                        "training camera is moved to it. Only models that take the camera as an input (e.g. a tabletop model)")
     p.add_argument("--quiet", action="store_true")
