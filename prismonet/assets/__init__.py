@@ -24,6 +24,8 @@ MODELS = {
     "blocktowers": "blocktowers_model",
     "cars": "cars_model",
     "tableware": "tableware_model",
+    "clevr1to8": "clevr1to8_model",
+    "tabletop": "tabletop_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -46,6 +48,8 @@ MODEL_SAMPLES = {
     "blocktowers": "samples/towers",
     "cars": "samples/cars",
     "tableware": "samples/tableware",
+    "clevr1to8": "samples/clevr1to8",
+    "tabletop": "samples/tabletop",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 

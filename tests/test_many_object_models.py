@@ -1,0 +1,35 @@
+"""The shipped 8-slot models of issue 21 (``clevr1to8``: 1-8 Clevr objects; ``tabletop``: the same with a
+randomised look and camera, poses in the camera's frame) on their 16 shipped test scenes each, against
+their measured feed-forward figures with a margin of 0.05 AP and 10 % depth RMSE
+(``python3 -m prismonet evaluate NAME prismonet/assets/samples/NAME [--prune]``)."""
+
+import pytest
+
+from prismonet.assets import asset_path, model_names, samples_for
+from prismonet.data.dataset import SceneDataset
+from prismonet.evaluation.evaluate import check_compatible, evaluate_model
+from prismonet.model.inference import InferenceConfig
+from prismonet.model.io import load_model
+
+MEASURED = {  # 2026-11-24, the 16 shipped scenes: feed-forward AP0.5, depth RMSE; AP0.5 with --prune
+    "clevr1to8": {"AP0.5": 0.750, "depth_RMSE": 0.149, "pruned": 0.860, "frame": "world"},
+    "tabletop": {"AP0.5": 0.563, "depth_RMSE": 0.228, "pruned": 0.725, "frame": "camera"},
+}
+
+
+@pytest.mark.parametrize("name", sorted(MEASURED))
+def test_many_object_model_ships_and_finds_its_objects(name):
+    m = MEASURED[name]
+    assert name in model_names()
+    for f in (f"{name}_model.safetensors", f"{name}_model.json", f"{name}_train_config.json", f"{name}_train_log.jsonl"):
+        assert asset_path(f).is_file(), f
+    model, info = load_model(name)
+    assert model.cfg.num_slots == 8 and model.cfg.pose_frame == m["frame"]
+    ds = SceneDataset(samples_for(name), split="test")
+    check_compatible(model, info, ds)
+    r = evaluate_model(model, ds, batch_size=16, progress=False)
+    assert r["scenes"] == 16 and int(ds.arrays["obj_count"].max()) <= 8
+    assert r["AP0.5"] >= m["AP0.5"] - 0.05
+    assert r["depth_RMSE"] <= m["depth_RMSE"] * 1.10
+    pruned = evaluate_model(model, ds, batch_size=16, progress=False, inference=InferenceConfig.of(prune=True))
+    assert pruned["AP0.5"] >= m["pruned"] - 0.05 and pruned["slots_decoded"] < 8
