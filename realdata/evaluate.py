@@ -132,15 +132,10 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     from realdata.reconstruct import reconstruct_photos
 
     labels = load_labels(labels_dir)
-    if label_elevations and elevation is None:  # the labels' elevations by eye, for a model that takes the camera as an input
-        from prismonet.model.io import load_model
-
-        hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None}
-        if hints and load_model(model)[0].cfg.pose_frame == "camera":
-            elevation = hints
+    hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None} if label_elevations else None
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
-                              elevation=elevation)
+                              elevation=elevation, elevation_hints=hints or None)
     import cv2
 
     rows = []

@@ -33,13 +33,16 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
-                       metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None) -> list[dict]:
+                       metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
+                       elevation_hints: dict[str, float] | None = None) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``).
 
     ``elevation``: degrees, for all photos or ``{photo stem: degrees}``: an uncalibrated photo is seen by the
     model's training camera moved to that elevation about the table point it looks at (``orbit_elevation``),
     e.g. about 80 for a photo taken from above. Only for models that take the camera as an input
-    (``pose_frame = "camera"``); the others know one camera."""
+    (``pose_frame = "camera"``); the others know one camera. ``elevation_hints`` (``{photo stem: degrees}``,
+    e.g. the labels' ``elevation_deg``): used as ``elevation`` when that is not given and the model takes
+    the camera as an input, ignored otherwise."""
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
@@ -60,6 +63,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     prepared = out / "prepared"
     train_cam, train_ground = training_camera(net, info)
     own = net.cfg.pose_frame == "camera"  # a camera-frame model takes the calibrated photo camera as it is
+    if elevation is None and own:
+        elevation = elevation_hints
     if elevation is not None and not own:
         raise ValueError("an elevation needs a model that takes the camera as an input (pose_frame camera, e.g. a "
                          "tabletop model); this one was trained from one camera")
