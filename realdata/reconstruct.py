@@ -63,6 +63,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     prepared = out / "prepared"
     train_cam, train_ground = training_camera(net, info)
     own = net.cfg.pose_frame == "camera"  # a camera-frame model takes the calibrated photo camera as it is
+    asked = elevation  # given by the user, not a label's hint: say so when a calibrated camera overrides it
     if elevation is None and own:
         elevation = elevation_hints
     if elevation is not None and not own:
@@ -83,6 +84,11 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
             b.K[:] = train_cam.K
             b.T_world_cam[:] = train_cam.T_world_cam if elev is None else orbit_elevation(train_cam.T_world_cam, train_ground, elev)
         b.ground_z[:] = train_ground
+        warnings = list(by_name[ds.names[i]].get("warnings", []))
+        if own_cam and asked is not None:
+            asked_here = asked.get(ds.names[i]) if isinstance(asked, dict) else asked
+            if asked_here is not None:
+                warnings.append(f"elevation {asked_here:g} deg ignored: this photo's calibrated camera is used as it is")
         psnr = {}
 
         def score(step, o, b=b):
@@ -111,7 +117,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "camera": "the photo's own calibrated camera" if own_cam else
                         "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
                         else "model's training camera (assumed)" if elev is None
-                        else f"model's training camera moved to {elev:g} deg elevation (assumed)", "warnings": rec.get("warnings", []),
+                        else f"model's training camera moved to {elev:g} deg elevation (assumed)", "warnings": warnings,
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results

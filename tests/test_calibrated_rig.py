@@ -269,3 +269,10 @@ def test_reconstruct_hands_a_camera_frame_model_the_photo_camera(rig, tmp_path):
     assert all(r["camera"] == "the photo's own calibrated camera" and r["prepare"]["own_camera"] and r["finite"] for r in rows)
     scene = json.loads((tmp_path / "recon" / f"{Path(photos[0]).stem}.json").read_text())
     assert np.allclose(np.asarray(scene["camera"]["T_world_cam"]), np.asarray(rows[0]["prepare"]["camera"]["T_world_cam"]), atol=1e-5)
+    assert all(r["warnings"] == [] for r in rows)
+    # an elevation by eye does not override a calibrated camera, and the run says so per photo
+    assert main(["real", "reconstruct", photos[0], "--camera", str(out / "ground.yml"), "--model", str(tmp_path / "cam_model"),
+                 "--out", str(tmp_path / "recon_elev"), "--elevation", "70", "--quiet"]) == 0
+    row, = json.loads((tmp_path / "recon_elev" / "summary.json").read_text())
+    assert row["camera"] == "the photo's own calibrated camera"
+    assert row["warnings"] == ["elevation 70 deg ignored: this photo's calibrated camera is used as it is"]

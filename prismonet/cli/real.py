@@ -141,5 +141,6 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
     p.add_argument("--elevation", type=arg_float(0.0, 89.0, positive=True), metavar="DEG",
                    help="uncalibrated photos: the camera's elevation above the table, by eye (about 80 from above); the "
-                        "training camera is moved to it. Only models that take the camera as an input (e.g. a tabletop model)")
+                        "training camera is moved to it. Only models that take the camera as an input (e.g. a tabletop model); "
+                        "a photo with a calibrated ground pose keeps its own camera (a warning says so)")
     p.add_argument("--quiet", action="store_true")
