@@ -1,12 +1,12 @@
 """The scene model and its losses: shapes, ablation switches doing what they claim, schedules."""
 
-
+import math
 
 import pytest
 import torch
 
 from prismonet.model.config import ModelConfig
-from prismonet.model.losses import LossConfig, blur, blur_sigma, compute_losses, ground_loss, intersection_loss, outside_loss, pose_loss, shape_weight
+from prismonet.model.losses import LossConfig, blur, blur_sigma, compute_losses, ground_loss, intersection_loss, mask_loss, outside_loss, pose_loss, shape_weight
 from prismonet.model.prismonet import PriSMONet
 from prismonet.render import SceneParams
 
@@ -156,6 +156,20 @@ def test_mask_loss_has_a_gradient_through_soft_silhouettes(batch):
         compute_losses(PriSMONet(), run(PriSMONet(), batch), batch, LossConfig(w_mask=1.0), 0)
 
 
+def test_seek_term_pulls_hidden_slots_through_the_encoder(batch):
+    """With ``w_seek``: an untrained model hides most slots, so some seek; the term is positive and its
+    gradient reaches the encoder; with weight 0 it is exactly 0."""
+    torch.manual_seed(0)
+    model = PriSMONet(ModelConfig(num_slots=3))
+    out = run(model, batch)
+    off = compute_losses(model, out, batch, LossConfig(), 0)
+    assert float(off.seek) == 0.0
+    terms = compute_losses(model, out, batch, LossConfig(w_seek=1.0, use_image=False, use_depth=False, use_ground=False, use_shape=False), 0)
+    assert float(terms.seek.detach()) > 0 and "seek" in terms.scalars()
+    terms.total.backward()
+    assert sum(p.grad.abs().sum() for p in model.encoder.parameters() if p.grad is not None) > 0
+
+
 def test_mask_from_depth_matches_the_instance_mask(batch):
     """The foreground implied by depth and the known ground plane is the true instance mask, except
     where depth cannot tell: beyond the far clip (12, where the ground is clipped too) and where
@@ -194,3 +208,22 @@ def test_input_blur_and_noise_ranges(batch):
     noisy, _ = make_inputs(replace(batch, rgb=torch.zeros(8, 3, 64, 64)), TrainConfig(input_noise=0.01, input_noise_max=0.05), g())
     stds = noisy.flatten(1).std(1)
     assert stds.min() >= 0.009 and stds.max() <= 0.051 and stds.max() - stds.min() > 0.01
+
+
+def test_mask_loss_leaves_out_the_far_clip_when_asked():
+    """With ``mask_skip_far``, pixels whose depth reads the far clip add nothing to L_mask (there depth cannot
+    tell an object from the ground); the other pixels' BCE is unchanged. By hand, blur off."""
+    from types import SimpleNamespace
+
+    soft = torch.full((1, 1, 1, 4, 4), 0.25)[:, :, 0]  # (B, N=1, H, W)
+    depth = torch.full((1, 1, 4, 4), 5.0)
+    depth[..., 0, :2] = 3.0  # an object in front of the ground (at 5)
+    depth[..., 3, :] = 12.0  # the far clip
+    out = SimpleNamespace(obj_soft_mask=soft, bg_depth=torch.full((1, 1, 4, 4), 5.0))
+    batch = SimpleNamespace(depth=depth)
+    bce_fg, bce_bg = -math.log(0.25), -math.log(0.75)
+    cfg = LossConfig(w_mask=1.0, mask_from_depth=True, blur=False)
+    every = float(mask_loss(out, batch, cfg, 0, far_depth=12.0))
+    assert every == pytest.approx((2 * bce_fg + 14 * bce_bg) / 16, rel=1e-6)
+    skip = float(mask_loss(out, batch, LossConfig(w_mask=1.0, mask_from_depth=True, blur=False, mask_skip_far=True), 0, far_depth=12.0))
+    assert skip == pytest.approx((2 * bce_fg + 10 * bce_bg) / 16, rel=1e-6)

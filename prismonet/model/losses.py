@@ -12,6 +12,7 @@ L_total = l_I L_I + l_D L_D + l_gr L_gr + l_sh(t) L_sh  [+ l_int L_int + l_p L_p
   supervision with Hungarian matching), L_mask (BCE of blurred foreground masks): the paper's
   optional extras, off by default. L_mask needs soft silhouettes (``model.soft_mask_tau > 0``):
   the binary masks have no gradient, so a BCE on them alone would train nothing.
+- Beyond the paper: L_distill (``prismonet.model.distill``) and L_seek (``prismonet.model.seek``).
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import math
 from dataclasses import dataclass
 
 import torch
+
+from prismonet.model.foreground import at_far_clip, depth_foreground
 
 EPS_BCE = 1e-6
 """Predicted mask probabilities are clamped to [EPS_BCE, 1 - EPS_BCE] before the logarithms."""
@@ -58,6 +61,11 @@ class LossConfig:
     """L_mask's target from the depth image alone: pixels in front of the known ground plane by
     more than ``mask_depth_margin``. No labels: the RGB-D input and the plane already imply it."""
     mask_depth_margin: float = 0.05
+    mask_skip_far: bool = False
+    """With ``mask_from_depth``: leave out of L_mask the pixels whose depth is at the far clip
+    (``model.far_depth``). There depth cannot tell an object from the ground (both read as the clip), so
+    the depth-made target would call an object beyond the clip ground and push the slots off it. Off by
+    default: the runs recorded before it existed trained without it."""
     w_presence: float = 0.0
     """With ``model.presence``: the cost of a present slot (sum of presences per scene), so that a slot
     that explains nothing turns itself off. It must stay below what a small object's pixels are worth in
@@ -65,9 +73,12 @@ class LossConfig:
     w_distill: float = 0.0
     """Self-distillation (beyond the paper): weight of the regression onto the test-time fit's
     slots (``prismonet.model.distill``; needs ``TrainConfig.distill``)."""
+    w_seek: float = 0.0
+    """Seeking the unexplained (beyond the paper; ``prismonet.model.seek``): weight of the pull of slots that
+    explain nothing towards the largest foreground region (from the depth image) that no slot covers."""
 
     def __post_init__(self) -> None:
-        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence"):
+        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence", "w_distill", "w_seek"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.sh_steps <= 0 or self.blur_steps <= 0:
@@ -156,21 +167,26 @@ def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count) -> torch.Tensor:
     return torch.stack(out)
 
 
-def mask_loss(out, batch, cfg: LossConfig, step: int, target_depth: torch.Tensor | None = None) -> torch.Tensor:
+def mask_loss(out, batch, cfg: LossConfig, step: int, target_depth: torch.Tensor | None = None,
+              far_depth: float | None = None) -> torch.Tensor:
     """``()`` the paper's L_mask: BCE between the blurred foreground target and the blurred union
     of the predicted soft silhouettes. The target is the ground-truth instance mask, or, with
-    ``mask_from_depth``, the pixels whose depth lies in front of the known ground plane."""
+    ``mask_from_depth``, the pixels whose depth lies in front of the known ground plane (with
+    ``mask_skip_far`` and ``far_depth``, pixels at the far clip are left out)."""
     if out.obj_soft_mask is None:
         raise ValueError("loss.w_mask > 0 needs soft silhouettes: set model.soft_mask_tau > 0")
     pred = 1 - torch.prod(1 - out.obj_soft_mask, dim=1, keepdim=True)  # union over slots
     if cfg.mask_from_depth:
         d = batch.depth if target_depth is None else target_depth
-        gt = ((d > 0) & (d < out.bg_depth - cfg.mask_depth_margin)).to(pred.dtype)
+        gt = depth_foreground(d, out.bg_depth, cfg.mask_depth_margin).to(pred.dtype)
     else:
         gt = (batch.instance > 0).to(pred.dtype)[:, None]
     p = blur(pred, cfg, step).clamp(EPS_BCE, 1 - EPS_BCE)
     g = blur(gt, cfg, step)
-    return -(g * torch.log(p) + (1 - g) * torch.log(1 - p)).mean()
+    bce = -(g * torch.log(p) + (1 - g) * torch.log(1 - p))
+    if cfg.mask_from_depth and cfg.mask_skip_far and far_depth is not None:
+        bce = bce * ~at_far_clip(d, far_depth)
+    return bce.mean()
 
 
 @dataclass
@@ -188,6 +204,7 @@ class LossTerms:
     mask: torch.Tensor
     distill: torch.Tensor
     presence: torch.Tensor
+    seek: torch.Tensor
 
     def scalars(self) -> dict[str, float]:
         return {k: float(v.detach()) for k, v in self.__dict__.items()}
@@ -209,7 +226,8 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     H, W = batch.rgb.shape[-2:]
     outside = outside_loss(p, batch.K, batch.T_world_cam, W, H).mean() if cfg.w_outside > 0 else zero
     pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count).mean() if cfg.w_pose > 0 else zero
-    mask = mask_loss(out, batch, cfg, step, target_depth) if cfg.w_mask > 0 else zero
+    far = getattr(getattr(model, "cfg", None), "far_depth", None)
+    mask = mask_loss(out, batch, cfg, step, target_depth, far) if cfg.w_mask > 0 else zero
     if cfg.w_distill > 0 and distill is not None:
         from prismonet.model.distill import distill_loss
 
@@ -217,7 +235,15 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     else:
         dist = zero
     presence = out.presence.sum(1).mean() if out.presence is not None else zero
+    if cfg.w_seek > 0:
+        from prismonet.model.seek import seek_foreground, seek_loss, seek_targets
+
+        fg = seek_foreground(batch.rgb, depth_gt, out.bg_depth, out.latents.bg_color.detach(), far, cfg.mask_depth_margin)
+        seek = seek_loss(p.position, *seek_targets(out.composite.instance, p.scale.shape[1], fg, depth_gt[:, 0], batch.K,
+                                                   batch.T_world_cam, batch.ground_z, far))
+    else:
+        seek = zero
     total = (cfg.w_image * image + cfg.w_depth * depth + cfg.w_ground * ground + shape_weight(cfg, step) * shape
              + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose + cfg.w_mask * mask
-             + cfg.w_distill * dist + cfg.w_presence * presence)
-    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask, dist, presence)
+             + cfg.w_distill * dist + cfg.w_presence * presence + cfg.w_seek * seek)
+    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask, dist, presence, seek)
