@@ -211,7 +211,7 @@ def test_input_blur_and_noise_ranges(batch):
 
 
 def test_mask_loss_leaves_out_the_far_clip_when_asked():
-    """With ``mask_skip_far``, pixels whose depth reads the far clip add nothing to L_mask (there depth cannot
+    """With ``far_clip``, pixels whose depth reads the far clip add nothing to L_mask (there depth cannot
     tell an object from the ground); the other pixels' BCE is unchanged. By hand, blur off."""
     from types import SimpleNamespace
 
@@ -225,5 +225,22 @@ def test_mask_loss_leaves_out_the_far_clip_when_asked():
     cfg = LossConfig(w_mask=1.0, mask_from_depth=True, blur=False)
     every = float(mask_loss(out, batch, cfg, 0, far_depth=12.0))
     assert every == pytest.approx((2 * bce_fg + 14 * bce_bg) / 16, rel=1e-6)
-    skip = float(mask_loss(out, batch, LossConfig(w_mask=1.0, mask_from_depth=True, blur=False, mask_skip_far=True), 0, far_depth=12.0))
+    skip = float(mask_loss(out, batch, LossConfig(w_mask=1.0, mask_from_depth=True, blur=False, far_clip=True), 0, far_depth=12.0))
     assert skip == pytest.approx((2 * bce_fg + 10 * bce_bg) / 16, rel=1e-6)
+
+
+def test_depth_loss_sees_the_render_through_the_far_clip_when_asked():
+    """With ``far_clip``, an object rendered beyond the clip (13 against the input's clipped 12) costs
+    nothing in L_D; without it, it costs its excess. By hand, blur off."""
+    from types import SimpleNamespace
+
+    rendered = torch.full((1, 1, 4, 4), 5.0)
+    rendered[..., 0, :2] = 13.0  # a far object, correctly placed
+    target = rendered.clamp(max=12.0)
+    out = SimpleNamespace(composite=SimpleNamespace(image=torch.zeros(1, 3, 4, 4), depth=rendered), presence=None,
+                          latents=SimpleNamespace(params=None, bg_color=torch.zeros(1, 3)))
+    batch = SimpleNamespace(rgb=torch.zeros(1, 3, 4, 4), depth=target)
+    model = SimpleNamespace(cfg=SimpleNamespace(far_depth=12.0))
+    only_depth = dict(use_image=False, use_ground=False, use_shape=False, blur=False)
+    assert float(compute_losses(model, out, batch, LossConfig(**only_depth), 0).depth) == pytest.approx(2 / 16)
+    assert float(compute_losses(model, out, batch, LossConfig(far_clip=True, **only_depth), 0).depth) == 0.0

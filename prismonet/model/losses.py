@@ -61,11 +61,12 @@ class LossConfig:
     """L_mask's target from the depth image alone: pixels in front of the known ground plane by
     more than ``mask_depth_margin``. No labels: the RGB-D input and the plane already imply it."""
     mask_depth_margin: float = 0.05
-    mask_skip_far: bool = False
-    """With ``mask_from_depth``: leave out of L_mask the pixels whose depth is at the far clip
-    (``model.far_depth``). There depth cannot tell an object from the ground (both read as the clip), so
-    the depth-made target would call an object beyond the clip ground and push the slots off it. Off by
-    default: the runs recorded before it existed trained without it."""
+    far_clip: bool = False
+    """Model the depth sensor's far clip (``model.far_depth``, where the input depth is clipped): L_D
+    compares the render clipped there too, and L_mask from depth leaves out the pixels whose input depth
+    reads the clip. Without it an object beyond the clip is taught away: L_mask's depth-made target
+    calls it ground, and L_D charges a correctly placed far object for rendering deeper than the clip.
+    Off by default: the runs recorded before it existed trained without it."""
     w_presence: float = 0.0
     """With ``model.presence``: the cost of a present slot (sum of presences per scene), so that a slot
     that explains nothing turns itself off. It must stay below what a small object's pixels are worth in
@@ -172,7 +173,7 @@ def mask_loss(out, batch, cfg: LossConfig, step: int, target_depth: torch.Tensor
     """``()`` the paper's L_mask: BCE between the blurred foreground target and the blurred union
     of the predicted soft silhouettes. The target is the ground-truth instance mask, or, with
     ``mask_from_depth``, the pixels whose depth lies in front of the known ground plane (with
-    ``mask_skip_far`` and ``far_depth``, pixels at the far clip are left out)."""
+    ``far_clip`` and ``far_depth``, pixels at the far clip are left out)."""
     if out.obj_soft_mask is None:
         raise ValueError("loss.w_mask > 0 needs soft silhouettes: set model.soft_mask_tau > 0")
     pred = 1 - torch.prod(1 - out.obj_soft_mask, dim=1, keepdim=True)  # union over slots
@@ -184,7 +185,7 @@ def mask_loss(out, batch, cfg: LossConfig, step: int, target_depth: torch.Tensor
     p = blur(pred, cfg, step).clamp(EPS_BCE, 1 - EPS_BCE)
     g = blur(gt, cfg, step)
     bce = -(g * torch.log(p) + (1 - g) * torch.log(1 - p))
-    if cfg.mask_from_depth and cfg.mask_skip_far and far_depth is not None:
+    if cfg.mask_from_depth and cfg.far_clip and far_depth is not None:
         bce = bce * ~at_far_clip(d, far_depth)
     return bce.mean()
 
@@ -219,14 +220,15 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     zero = torch.zeros((), dtype=out.composite.image.dtype)
     depth_gt = batch.depth if target_depth is None else target_depth
     image = ((blur(out.composite.image, cfg, step) - blur(batch.rgb, cfg, step)) ** 2).sum(1).mean() if cfg.use_image else zero
-    depth = (blur(out.composite.depth, cfg, step) - blur(depth_gt, cfg, step)).abs().mean() if cfg.use_depth else zero
+    far = getattr(getattr(model, "cfg", None), "far_depth", None)
+    rendered = out.composite.depth.clamp(max=far) if cfg.far_clip and far is not None else out.composite.depth
+    depth = (blur(rendered, cfg, step) - blur(depth_gt, cfg, step)).abs().mean() if cfg.use_depth else zero
     ground = ground_loss(model, p, batch.ground_z).mean() if cfg.use_ground else zero
     shape = (p.z_sh**2).sum((1, 2)).mean() if cfg.use_shape else zero
     inter = intersection_loss(model, p, cfg.intersection_points).mean() if cfg.w_intersection > 0 else zero
     H, W = batch.rgb.shape[-2:]
     outside = outside_loss(p, batch.K, batch.T_world_cam, W, H).mean() if cfg.w_outside > 0 else zero
     pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count).mean() if cfg.w_pose > 0 else zero
-    far = getattr(getattr(model, "cfg", None), "far_depth", None)
     mask = mask_loss(out, batch, cfg, step, target_depth, far) if cfg.w_mask > 0 else zero
     if cfg.w_distill > 0 and distill is not None:
         from prismonet.model.distill import distill_loss
