@@ -9,6 +9,7 @@ from prismonet.evaluation.metrics import (
     adjusted_rand_index,
     angle_error,
     ari_metrics,
+    clip_breakdown,
     count_breakdown,
     depth_metrics,
     detection_metrics,
@@ -82,6 +83,20 @@ def test_count_breakdown_hand_computed():
     assert rows[0]["AP0.5"] == 1.0 and rows[0]["AR0.5"] == 1.0 and rows[0]["count_exact"] == 1.0
     assert rows[1]["AR0.5"] == pytest.approx(0.75) and rows[1]["AP0.5"] == pytest.approx((1.0 + 2 / 3) / 2)
     assert rows[1]["count_exact"] == 0.0 and rows[1]["count_bias"] == 0.0  # one short, one over
+
+
+def test_clip_breakdown_hand_computed():
+    """Three objects, one found of the two within the depth range and the one beyond the clip found; an
+    object with exactly half its pixels at the clip counts as within range."""
+    gt = scene([(0, 10, 0, 10), (20, 30, 20, 30), (40, 50, 40, 50)], size=64)
+    pred = scene([(0, 10, 0, 10), (40, 50, 40, 50)], size=64)
+    depth = np.full(gt.shape, 5.0)
+    depth[40:50, 40:50] = 12.0  # object 3: all at the clip
+    depth[20:25, 20:30] = 12.0  # object 2: half
+    r = clip_breakdown(pred[None], gt[None], depth[None], 12.0)
+    assert r == {"near": {"objects": 2, "AR0.5": 0.5}, "beyond_clip": {"objects": 1, "AR0.5": 1.0}}
+    none = clip_breakdown(pred[None], gt[None], np.full((1, *gt.shape), 5.0), 12.0)
+    assert none["beyond_clip"]["objects"] == 0 and math.isnan(none["beyond_clip"]["AR0.5"])
 
 
 def test_ari_matches_scikit_learn():

@@ -46,6 +46,11 @@ def cmd_evaluate(args) -> int:
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")
           + f"; depth RMSE of the empty ground {results['depth_RMSE_empty']:.3f}")
+    far = results["by_depth_clip"]["beyond_clip"]
+    if far["objects"]:
+        near = results["by_depth_clip"]["near"]
+        print(f"AR0.5 of objects within the depth range {near['AR0.5']:.3f} ({near['objects']}), beyond the depth clip "
+              f"{far['AR0.5']:.3f} ({far['objects']}: there depth cannot tell them from the ground)")
     print("\nper encoder step:\n" + format_steps(results))
     if len(results["by_count"]) > 1:
         print("\nper number of visible objects:\n" + format_counts(results))

@@ -10,6 +10,7 @@ import torch
 from prismonet.evaluation.metrics import (
     angle_error,
     ari_metrics,
+    clip_breakdown,
     count_breakdown,
     count_metrics,
     depth_metrics,
@@ -180,6 +181,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
     results.update(count_metrics(cat(pred_inst), cat(gt_inst)))
     results["by_count"] = count_breakdown(cat(pred_inst), cat(gt_inst))
+    results["by_depth_clip"] = clip_breakdown(cat(pred_inst), cat(gt_inst), cat(gt_d), model.cfg.far_depth)
     results.update(image_metrics(cat(pred_img), cat(gt_img)))
     results.update(depth_metrics(cat(pred_d), cat(gt_d)))
     results["depth_RMSE_empty"] = depth_metrics(cat(empty_d), cat(gt_d))["depth_RMSE"]  # the ground alone (the paper's 6-DoF table)

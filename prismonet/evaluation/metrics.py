@@ -120,6 +120,22 @@ def count_breakdown(pred_instances: np.ndarray, gt_instances: np.ndarray) -> lis
     return rows
 
 
+def clip_breakdown(pred_instances: np.ndarray, gt_instances: np.ndarray, gt_depths: np.ndarray, far_depth: float,
+                   tol: float = 1e-3) -> dict:
+    """Recall at IoU 0.5 of the visible objects within the depth sensor's range (``"near"``) and beyond
+    it (``"beyond_clip"``: more than half of the object's pixels read ``far_depth``, where depth cannot
+    tell it from the ground), over scenes ``(N, H, W)``: ``{part: {"objects", "AR0.5"}}``."""
+    hit = {"near": [0, 0], "beyond_clip": [0, 0]}
+    for pi, gi, d in zip(pred_instances, gt_instances, gt_depths):
+        found = {g for _, g in scene_detection(pi, gi, 0.5)["pairs"]}
+        gid, gm = instance_masks(gi)
+        for g, m in zip(gid, gm):
+            part = "beyond_clip" if (d[m] >= far_depth - tol).mean() > 0.5 else "near"
+            hit[part][0] += 1
+            hit[part][1] += int(g) in found
+    return {k: {"objects": n, "AR0.5": (f / n) if n else math.nan} for k, (n, f) in hit.items()}
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
     """RMSE, PSNR (data range 1) and SSIM (11x11 Gaussian window, sigma 1.5) of images ``(N, 3, H, W)`` in [0, 1].
 
