@@ -128,14 +128,17 @@ def test_seek_foreground_adds_off_colour_pixels_only_at_the_far_clip():
 def test_seek_loss_value_and_gradient():
     pos = torch.tensor([[[1.0, 2.0, 3.0], [0.0, 0.0, 9.0]], [[-1.0, 0.5, 0.0], [2.0, 2.0, 2.0]]], dtype=torch.float64, requires_grad=True)
     targets = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]], dtype=torch.float64)
-    weight = torch.tensor([[0.0, 1.0], [1.0, 0.0]], dtype=torch.float64)
+    weight = torch.tensor([[1.0, 1.0], [1.0, 0.0]], dtype=torch.float64)
     loss = seek_loss(pos, targets, weight)
-    assert loss.item() == pytest.approx(((1 + 1) + (1 + 0.5)) / 2)  # z is not pulled
+    # scene 0: the mean of its two seeking slots' distances (3 and 2); scene 1: 1.5; z is not pulled
+    assert loss.item() == pytest.approx(((3 + 2) / 2 + 1.5) / 2)
     loss.backward()
     expect = torch.zeros_like(pos)
-    expect[0, 1, :2] = torch.tensor([-0.5, -0.5])
+    expect[0, 0, :2] = torch.tensor([0.25, 0.25])
+    expect[0, 1, :2] = torch.tensor([-0.25, -0.25])
     expect[1, 0, :2] = torch.tensor([-0.5, 0.5])
     assert torch.equal(pos.grad, expect)
+    assert seek_loss(pos, targets, torch.zeros_like(weight)).item() == 0.0
 
 
 def test_bad_shapes_are_refused():
