@@ -79,16 +79,14 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
         b = ds.batch([i])  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
         own_cam = by_name[ds.names[i]].get("own_camera", False)
-        elev = elevation.get(ds.names[i]) if isinstance(elevation, dict) else elevation
+        elev = _for_photo(elevation, ds.names[i])
         if not own_cam:
             b.K[:] = train_cam.K
             b.T_world_cam[:] = train_cam.T_world_cam if elev is None else orbit_elevation(train_cam.T_world_cam, train_ground, elev)
         b.ground_z[:] = train_ground
         warnings = list(by_name[ds.names[i]].get("warnings", []))
-        if own_cam and asked is not None:
-            asked_here = asked.get(ds.names[i]) if isinstance(asked, dict) else asked
-            if asked_here is not None:
-                warnings.append(f"elevation {asked_here:g} deg ignored: this photo's calibrated camera is used as it is")
+        if own_cam and _for_photo(asked, ds.names[i]) is not None:
+            warnings.append(f"elevation {_for_photo(asked, ds.names[i]):g} deg ignored: this photo's calibrated camera is used as it is")
         psnr = {}
 
         def score(step, o, b=b):
@@ -121,6 +119,11 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
+
+
+def _for_photo(value: float | dict[str, float] | None, name: str) -> float | None:
+    """An elevation given for all photos, or per photo stem (``None`` where a photo has none)."""
+    return value.get(name) if isinstance(value, dict) else value
 
 
 def _objects(o, keep: list[int], world: dict | None) -> list[dict]:

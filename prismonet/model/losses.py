@@ -220,8 +220,8 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     zero = torch.zeros((), dtype=out.composite.image.dtype)
     depth_gt = batch.depth if target_depth is None else target_depth
     image = ((blur(out.composite.image, cfg, step) - blur(batch.rgb, cfg, step)) ** 2).sum(1).mean() if cfg.use_image else zero
-    far = getattr(getattr(model, "cfg", None), "far_depth", None)
-    rendered = out.composite.depth.clamp(max=far) if cfg.far_clip and far is not None else out.composite.depth
+    far = model.cfg.far_depth
+    rendered = out.composite.depth.clamp(max=far) if cfg.far_clip else out.composite.depth
     depth = (blur(rendered, cfg, step) - blur(depth_gt, cfg, step)).abs().mean() if cfg.use_depth else zero
     ground = ground_loss(model, p, batch.ground_z).mean() if cfg.use_ground else zero
     shape = (p.z_sh**2).sum((1, 2)).mean() if cfg.use_shape else zero

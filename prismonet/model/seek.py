@@ -67,7 +67,7 @@ def seek_targets(instance: torch.Tensor, num_slots: int, foreground: torch.Tenso
         foreground: ``(B, H, W)`` bool (``seek_foreground``).
         depth: ``(B, H, W)`` the input's camera-z depth.
         K: ``(B, 3, 3)``; T_world_cam: ``(B, 4, 4)``; ground_z: ``(B,)``.
-        far_depth: the depth clip: a region whose median depth reads it is placed by the ground instead.
+        far_depth: the depth clip: a region most of whose pixels read it is placed by the ground instead.
 
     Returns:
         ``targets (B, N, 3)`` world points and ``weight (B, N)``: 1 for a seeking slot, else 0.
@@ -84,16 +84,12 @@ def seek_targets(instance: torch.Tensor, num_slots: int, foreground: torch.Tenso
     for b in range(B):
         won = np.bincount(inst[b][fg[b]].ravel(), minlength=num_slots + 1)[1:]
         left = cv2.morphologyEx((fg[b] & (inst[b] == 0)).astype(np.uint8), cv2.MORPH_OPEN, kernel)
-        for k in np.flatnonzero(won < min_pixels):
-            count, labels, stats, _ = cv2.connectedComponentsWithStats(left, connectivity=4)
-            if count <= 1:
-                break
-            areas = stats[1:, cv2.CC_STAT_AREA]
-            best = int(np.argmax(areas))
-            if areas[best] < min_pixels:
-                break
-            region = labels == best + 1
-            left[region] = 0
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(left, connectivity=4)
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        largest = [i + 1 for i in np.argsort(-areas, kind="stable") if areas[i] >= min_pixels]
+        # seeking slots in encoder order take the regions from the largest down, one each
+        for k, label in zip(np.flatnonzero(won < min_pixels), largest):
+            region = labels == label
             target = _foot(region, K[b], T_world_cam[b], float(ground_z[b])) if far[b][region].mean() > 0.5 else _centroid(region, uv, depth[b], K[b], T_world_cam[b])
             if target is not None:
                 targets[b, k] = target
