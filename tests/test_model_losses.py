@@ -244,3 +244,14 @@ def test_depth_loss_sees_the_render_through_the_far_clip_when_asked():
     only_depth = dict(use_image=False, use_ground=False, use_shape=False, blur=False)
     assert float(compute_losses(model, out, batch, LossConfig(**only_depth), 0).depth) == pytest.approx(2 / 16)
     assert float(compute_losses(model, out, batch, LossConfig(far_clip=True, **only_depth), 0).depth) == 0.0
+
+
+@pytest.mark.parametrize("override, message", [("loss.w_seek=-1", "w_seek must be non-negative"),
+                                               ("loss.w_distill=-0.5", "w_distill must be non-negative"),
+                                               ("loss.far_clip=maybe", "loss.far_clip: expected bool")])
+def test_bad_seek_and_clip_settings_are_one_clear_error(override, message):
+    from prismonet.config import load_config
+    from prismonet.model.trainer import TrainConfig
+
+    with pytest.raises(ValueError, match=message):
+        load_config(TrainConfig, overrides=[override])
