@@ -118,3 +118,16 @@ def test_search_scales_reach_the_search_and_its_description():
     assert cfg.search.scales == (0.8, 1.25) and cfg.search.rounds == 2
     assert cfg.describe() == "encoder, then 2 pose-search rounds (scales 0.8, 1.25)"
     assert InferenceConfig.of(search=2).describe() == "encoder, then 2 pose-search rounds"
+
+
+def test_search_far_clip_reaches_the_search_from_the_command_line():
+    import argparse
+
+    from prismonet.cli.common import add_inference_args, inference_config
+
+    p = argparse.ArgumentParser()
+    add_inference_args(p)
+    cfg = inference_config(p.parse_args(["--search", "3", "--search-far-clip"]))
+    assert cfg.search.far_clip and cfg.search.rounds == 3
+    assert cfg.describe() == "encoder, then 3 pose-search rounds, depth clipped"
+    assert not inference_config(p.parse_args(["--search", "3"])).search.far_clip

@@ -41,6 +41,14 @@ def test_fit_score_by_hand():
     assert fit_score(image, depth, rgb, target, w_image=0.0, w_depth=1.0).item() == pytest.approx(0.5)
 
 
+def test_fit_score_clips_the_render_like_the_sensor():
+    rgb = torch.zeros(1, 3, 2, 2)
+    target = torch.full((1, 1, 2, 2), 12.0)  # the sensor reads its clip everywhere
+    depth = torch.tensor([[[[13.0, 12.0], [11.0, 12.0]]]])  # one pixel beyond the clip, one in front by 1
+    assert fit_score(rgb, depth, rgb, target, w_depth=1.0).item() == pytest.approx(2 / 4)
+    assert fit_score(rgb, depth, rgb, target, w_depth=1.0, far_depth=12.0).item() == pytest.approx(1 / 4)
+
+
 @pytest.mark.parametrize("kind", ["scale", "shift", "yaw"])
 def test_search_recovers_a_known_perturbation(shipped, kind):
     """Render the model's own latents as the target, perturb every slot by exactly one trial step,

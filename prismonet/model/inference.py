@@ -60,10 +60,12 @@ class InferenceConfig:
     @classmethod
     def of(cls, extra_slots: int = 0, search: int = 0, refine: int = 0, fit_color: int = 0, use_depth: bool = True,
            refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False,
-           prune: bool = False, search_scales: tuple[float, ...] | None = None) -> "InferenceConfig":
+           prune: bool = False, search_scales: tuple[float, ...] | None = None,
+           search_far_clip: bool = False) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each)."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
-        search_cfg = SearchConfig(rounds=search) if search_scales is None else SearchConfig(rounds=search, scales=tuple(search_scales))
+        scales = {} if search_scales is None else {"scales": tuple(search_scales)}
+        search_cfg = SearchConfig(rounds=search, far_clip=search_far_clip, **scales)
         return cls(extra_slots, search_cfg,
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
                    ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None)
@@ -81,7 +83,8 @@ class InferenceConfig:
         """One line, e.g. ``encoder, then 3 pose-search rounds, 50 colour-fit steps``."""
         steps = [f"{self.extra_slots} extra slots" if self.extra_slots else "",
                  (f"{self.search.rounds} pose-search rounds" + ("" if self.search.scales == SearchConfig().scales else
-                  " (scales " + ", ".join(f"{v:g}" for v in self.search.scales) + ")")) if self.search.rounds else "",
+                  " (scales " + ", ".join(f"{v:g}" for v in self.search.scales) + ")")
+                  + (", depth clipped" if self.search.far_clip else "")) if self.search.rounds else "",
                  f"{self.refine.steps} refinement steps" if self.refine.steps else "",
                  f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else "",
                  "pruning the slots that explain nothing" if self.prune else ""]

@@ -43,6 +43,10 @@ class SearchConfig:
     shape latent within each shape category (sphere, cylinder, cube for Clevr): the encoder's
     latents drift towards one category (cubes come out nearest a cylinder code, EVALUATION.md)."""
 
+    far_clip: bool = False
+    """Score the render with its depth clipped at the model's ``far_depth``, like the sensor's (off by
+    default: the recorded search figures were measured without it)."""
+
     def __post_init__(self) -> None:
         if self.rounds < 0 or any(s <= 0 for s in self.scales) or self.w_image < 0 or self.w_depth < 0 or not 0 < self.decay <= 1:
             raise ValueError(f"search: rounds and weights must be non-negative and scales positive, got {self}")
@@ -81,11 +85,12 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     B, N = p.scale.shape
     H, W = batch.rgb.shape[-2:]
     target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
+    far = model.cfg.far_depth if cfg.far_clip else None
     bg = out.latents.bg_color
     depth, mask, color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
     scale, position, cos_sin, z_sh = p.scale.clone(), p.position.clone(), p.cos_sin.clone(), p.z_sh.clone()
     comp = composite(depth, mask, color, bg, out.bg_depth)
-    best = fit_score(comp.image, comp.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth)
+    best = fit_score(comp.image, comp.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth, far)
     settings = model.render_settings()
     one = lambda t, k: None if t is None else t[:, k : k + 1]
     codes = model.prior.latents.to(p.z_sh.dtype)
@@ -101,7 +106,7 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
         d_try, m_try, c_try = depth.clone(), mask.clone(), color.clone()
         d_try[:, k], m_try[:, k], c_try[:, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
         c = composite(d_try, m_try, c_try, bg, out.bg_depth)
-        score = fit_score(c.image, c.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth)
+        score = fit_score(c.image, c.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth, far)
         win = score < best
         best = torch.where(win, score, best)
         w = win.view(B, 1, 1)
