@@ -300,6 +300,22 @@ def test_init_from_starts_a_run_with_a_trained_models_weights_at_another_slot_co
         train(cfg(data, steps=1, init_from=str(tmp_path / "nowhere")), tmp_path / "bad", progress=False)
 
 
+def test_a_run_records_which_weights_it_started_from_across_a_resume(data, tmp_path):
+    """``init_from`` names can move (``shipped`` is whichever model ships now): the run keeps the
+    fingerprint of the weights it actually started from, also when it was interrupted and resumed."""
+    from prismonet.model.io import weights_fingerprint
+
+    train(cfg(data, steps=2), tmp_path / "src", progress=False)
+    src, _ = load_model(tmp_path / "src")
+    run = cfg(data, steps=3, init_from=str(tmp_path / "src"))
+    train(run, tmp_path / "ft", progress=False, stop_after=1)
+    summary = train(run, tmp_path / "ft", progress=False)  # resumed: the source is not loaded again
+    _, info = load_model(tmp_path / "ft")
+    assert summary["init_weights"] == info["summary"]["init_weights"] == weights_fingerprint(src)
+    assert weights_fingerprint(src) != weights_fingerprint(load_model(tmp_path / "ft")[0])
+    assert "init_weights" not in load_model(tmp_path / "src")[1]["summary"]  # a run from scratch has none
+
+
 def test_init_from_a_model_of_another_architecture_is_a_clear_error(data, tmp_path):
     from prismonet.model.config import ModelConfig
 

@@ -15,15 +15,20 @@ class CheckpointError(ValueError):
     """A model checkpoint that is missing, damaged, or made for another configuration."""
 
 
-def prior_fingerprint(prior) -> str:
-    """A short hash of the prior's weights: a model is only valid with the prior it was trained on."""
+def weights_fingerprint(module: torch.nn.Module) -> str:
+    """A short hash of a module's weights (names and float32 values)."""
     import hashlib
 
     h = hashlib.sha256()
-    for k, v in sorted(prior.decoder.state_dict().items()):
+    for k, v in sorted(module.state_dict().items()):
         h.update(k.encode())
         h.update(v.detach().float().numpy().tobytes())
     return h.hexdigest()[:16]
+
+
+def prior_fingerprint(prior) -> str:
+    """A short hash of the prior's weights: a model is only valid with the prior it was trained on."""
+    return weights_fingerprint(prior.decoder)
 
 
 def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:

@@ -271,10 +271,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
         run.mkdir(parents=True, exist_ok=True)
     model = PriSMONet(cfg.model)
     ckpt = run / "checkpoint.safetensors"
+    init_weights = None  # the starting weights' fingerprint: names like "shipped" move when a new model ships
     if cfg.init_from is not None and not ckpt.is_file():
-        from prismonet.model.io import load_fitting, load_model, transfer_weights
+        from prismonet.model.io import load_fitting, load_model, transfer_weights, weights_fingerprint
 
         source = load_model(cfg.init_from)[0]
+        init_weights = weights_fingerprint(source)
         if cfg.init_transfer:
             fresh = transfer_weights(model, source)
             if rank == 0 and fresh:
@@ -298,6 +300,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
         model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         load_optimizer(opt, tensors, meta["optimizer"])
         start, nonfinite, elapsed = meta["step"], meta["nonfinite"], meta["elapsed_s"]
+        init_weights = meta.get("init_weights")
         if rank == 0:
             _truncate_log(run / "log.jsonl", start)
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
@@ -307,7 +310,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             return
         tensors, desc = optimizer_tensors(opt)
         tensors.update({f"model.{k}": v for k, v in model.state_dict().items()})
-        save_checkpoint(ckpt, tensors, {"config": cfg_json, "step": step, "nonfinite": nonfinite, "elapsed_s": elapsed, "optimizer": desc})
+        save_checkpoint(ckpt, tensors, {"config": cfg_json, "step": step, "nonfinite": nonfinite, "elapsed_s": elapsed, "optimizer": desc,
+                                          **({"init_weights": init_weights} if init_weights else {})})
 
     writer = None
     if rank == 0:
@@ -383,7 +387,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             writer.close()
         if log is not None:
             log.close()
-    summary = {"steps": step, "elapsed_s": round(elapsed, 1), "nonfinite": nonfinite, "last": last, "world_size": world}
+    summary = {"steps": step, "elapsed_s": round(elapsed, 1), "nonfinite": nonfinite, "last": last, "world_size": world,
+               **({"init_weights": init_weights} if init_weights else {})}
     if rank == 0 and step >= cfg.steps:
         b0 = ds.batch([0])
         save_model(model, run / "model", {"train": cfg_json, "summary": summary, "camera_K": b0.K[0].tolist(),
