@@ -15,6 +15,7 @@ from prismonet.evaluation.metrics import (
     detection_metrics,
     image_metrics,
     iou_matrix,
+    miss_breakdown,
     scene_detection,
     symmetry_period,
 )
@@ -97,6 +98,24 @@ def test_clip_breakdown_hand_computed():
     assert r == {"near": {"objects": 2, "AR0.5": 0.5}, "beyond_clip": {"objects": 1, "AR0.5": 1.0}}
     none = clip_breakdown(pred[None], gt[None], np.full((1, *gt.shape), 5.0), 12.0)
     assert none["beyond_clip"]["objects"] == 0 and math.isnan(none["beyond_clip"]["AR0.5"])
+
+
+def test_miss_breakdown_hand_computed():
+    """Six visible objects of 10x10 px: one found, one uncovered, one split, two merged, one misfit."""
+    gt = scene([(0, 10, 0, 10), (0, 10, 20, 30), (20, 30, 0, 10), (20, 30, 20, 30), (20, 30, 30, 40), (40, 50, 0, 10)], size=64)
+    pred = np.zeros_like(gt)
+    pred[0:10, 0:10] = 1  # object 1 found
+    pred[0:4, 20:30] = 2  # object 2: 40 % covered -> uncovered
+    pred[20:24, 0:10] = 3  # object 3: 40 % in one instance ...
+    pred[25:29, 0:10] = 4  # ... and 40 % in another: 80 % covered, no instance holds half -> split
+    pred[20:30, 20:40] = 5  # one instance over objects 4 and 5 (IoU 0.5, not above) -> both merged
+    pred[40:50, 0:10] = 6
+    pred[40:50, 10:20] = 6  # object 6 held whole by an instance twice its size: IoU 0.5 -> misfit
+    r = miss_breakdown(pred[None], gt[None])
+    assert r == {"objects": 6, "found": 1 / 6, "uncovered": 1 / 6, "split": 1 / 6, "merged": 2 / 6, "misfit": 1 / 6}
+    assert sum(v for k, v in r.items() if k != "objects") == pytest.approx(1.0)
+    nothing = miss_breakdown(np.zeros((1, 8, 8), np.int64), np.zeros((1, 8, 8), np.int64))
+    assert nothing["objects"] == 0 and math.isnan(nothing["found"])
 
 
 def test_ari_matches_scikit_learn():

@@ -30,6 +30,7 @@ def cmd_demo(args) -> int:
 def cmd_evaluate(args) -> int:
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_counts, format_steps, format_table
+    from prismonet.evaluation.metrics import MISS_KINDS
     from prismonet.model.io import load_model, training_loss_config
 
     cfg = inference_config(args)  # validates every step's settings before any work
@@ -51,6 +52,9 @@ def cmd_evaluate(args) -> int:
         near = results["by_depth_clip"]["near"]
         print(f"AR0.5 of objects within the depth range {near['AR0.5']:.3f} ({near['objects']}), beyond the depth clip "
               f"{far['AR0.5']:.3f} ({far['objects']}: there depth cannot tell them from the ground)")
+    miss = results["misses"]
+    print(f"of {miss['objects']} visible objects: found {miss['found']:.3f}; missed as " +
+          ", ".join(f"{k} {miss[k]:.3f}" for k in MISS_KINDS) + " (prismonet.evaluation.metrics.miss_breakdown)")
     print("\nper encoder step:\n" + format_steps(results))
     if len(results["by_count"]) > 1:
         print("\nper number of visible objects:\n" + format_counts(results))

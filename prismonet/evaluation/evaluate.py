@@ -16,6 +16,7 @@ from prismonet.evaluation.metrics import (
     depth_metrics,
     detection_metrics,
     image_metrics,
+    miss_breakdown,
     recurrent_step_metrics,
     scene_detection,
     SETTING_SYMMETRY,
@@ -182,6 +183,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results.update(count_metrics(cat(pred_inst), cat(gt_inst)))
     results["by_count"] = count_breakdown(cat(pred_inst), cat(gt_inst))
     results["by_depth_clip"] = clip_breakdown(cat(pred_inst), cat(gt_inst), cat(gt_d), model.cfg.far_depth)
+    results["misses"] = miss_breakdown(cat(pred_inst), cat(gt_inst))
     results.update(image_metrics(cat(pred_img), cat(gt_img)))
     results.update(depth_metrics(cat(pred_d), cat(gt_d)))
     results["depth_RMSE_empty"] = depth_metrics(cat(empty_d), cat(gt_d))["depth_RMSE"]  # the ground alone (the paper's 6-DoF table)

@@ -136,6 +136,42 @@ def clip_breakdown(pred_instances: np.ndarray, gt_instances: np.ndarray, gt_dept
     return {k: {"objects": n, "AR0.5": (f / n) if n else math.nan} for k, (n, f) in hit.items()}
 
 
+MISS_KINDS = ("uncovered", "split", "merged", "misfit")
+"""Why a visible object is missed at IoU 0.5 (``miss_breakdown``), tested in this order."""
+
+
+def miss_breakdown(pred_instances: np.ndarray, gt_instances: np.ndarray) -> dict:
+    """Where the visible objects of scenes ``(N, H, W)`` that are not found (IoU 0.5, as AR0.5) went, as
+    shares of all visible objects: ``{"objects", "found", "uncovered", "split", "merged", "misfit"}``.
+
+    Per missed object, with every predicted pixel counted (no size filter):
+    - *uncovered*: under half of its pixels belong to any predicted instance;
+    - *split*: covered, but no one predicted instance holds half of it;
+    - *merged*: the instance holding half of it also holds half of another visible object;
+    - *misfit*: one instance holds half of it and no other object, but is the wrong size or place."""
+    n = {k: 0 for k in ("objects", "found") + MISS_KINDS}
+    for pi, gi in zip(pred_instances, gt_instances):
+        found = {g for _, g in scene_detection(pi, gi, 0.5)["pairs"]}
+        gid, gm = instance_masks(gi)
+        pid = np.unique(pi[pi > 0])
+        # share of each visible object held by each predicted instance: (P, G)
+        held = np.array([[(pi[m] == p).mean() for m in gm] for p in pid]).reshape(len(pid), len(gid))
+        for j, g in enumerate(gid):
+            n["objects"] += 1
+            if int(g) in found:
+                n["found"] += 1
+            elif held[:, j].sum() < 0.5:
+                n["uncovered"] += 1
+            elif held[:, j].max() < 0.5:
+                n["split"] += 1
+            elif (held[held[:, j].argmax()] >= 0.5).sum() > 1:
+                n["merged"] += 1
+            else:
+                n["misfit"] += 1
+    total = n.pop("objects")
+    return {"objects": total, **{k: (v / total if total else math.nan) for k, v in n.items()}}
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
     """RMSE, PSNR (data range 1) and SSIM (11x11 Gaussian window, sigma 1.5) of images ``(N, 3, H, W)`` in [0, 1].
 
