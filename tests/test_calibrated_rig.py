@@ -127,7 +127,10 @@ def rig(tmp_path_factory):
     assert main(["calibrate", "intrinsics", *map(str, sorted((out / "boards").glob("*.png"))), *board, "--out", str(out / "cam.yml")]) == 0
     assert main(["calibrate", "ground", str(out / "ground.png"), "--camera", str(out / "cam.yml"), *board, "--out", str(out / "ground.yml")]) == 0
     photos = [str(out / s["photo"]) for s in truth["scenes"]]
-    assert main(["real", "reconstruct", *photos, "--camera", str(out / "ground.yml"), "--out", str(out / "recon"), "--quiet"]) == 0
+    # a fixed model, the one the thresholds below were set with: these tests are of the calibrated geometry, and a
+    # new default model (which finds more, and harder, objects) must not move them; its rig figures are in EVALUATION.md
+    assert main(["real", "reconstruct", *photos, "--camera", str(out / "ground.yml"), "--out", str(out / "recon"),
+                 "--model", "clevr3_distilled", "--quiet"]) == 0
     return out, cfg, truth, json.loads((out / "recon" / "summary.json").read_text())
 
 

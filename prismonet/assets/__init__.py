@@ -7,10 +7,13 @@ from importlib import resources
 from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (the 60K-step
-model of ``configs/clevr3_shipped.json`` plus 4K steps of self-distillation, ``configs/clevr3_distill.json``)."""
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-24: the
+self-distilled model below plus 16K steps with the far clip and the seek term, ``configs/clevr3_seek.json``)."""
+DISTILLED_MODEL = "clevr3_distilled_model"
+"""The self-distilled model (shipped 2026-11-23 to 11-24; the 60K-step model plus 4K steps of
+``configs/clevr3_distill.json``): what ``configs/clevr3_seek.json`` starts from."""
 PREVIOUS_MODEL = "clevr3_60k_model"
-"""The 60K-step model it was distilled from (shipped until 2026-11-23; what ``configs/clevr3_distill.json`` starts from)."""
+"""The 60K-step model (shipped until 2026-11-23; what ``configs/clevr3_distill.json`` starts from)."""
 SHIPPED_SAMPLES = "samples/clevr3"
 """16 scenes of the 3-object test split (packed, split ``test``)."""
 
@@ -18,6 +21,7 @@ SHIPPED_SAMPLES = "samples/clevr3"
 MODELS = {
     "clevr3": SHIPPED_MODEL,
     "clevr3_60k": PREVIOUS_MODEL,
+    "clevr3_distilled": DISTILLED_MODEL,
     "clevr2": "clevr2_model",
     "clevr4": "clevr4_model",
     "clevr5": "clevr5_model",
