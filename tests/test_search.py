@@ -49,10 +49,13 @@ def test_fit_score_clips_the_render_like_the_sensor():
     assert fit_score(rgb, depth, rgb, target, w_depth=1.0, far_depth=12.0).item() == pytest.approx(1 / 4)
 
 
-@pytest.mark.parametrize("kind", ["scale", "shift", "yaw"])
-def test_search_recovers_a_known_perturbation(shipped, kind):
+@pytest.mark.parametrize("kind, coarse", [("scale", 0), ("shift", 0), ("yaw", 0), ("scale", 1), ("shift", 1)])
+def test_search_recovers_a_known_perturbation(shipped, kind, coarse):
     """Render the model's own latents as the target, perturb every slot by exactly one trial step,
-    and a search with that one trial must undo it: the scene is then fitted exactly."""
+    and a search with that one trial must undo it: the scene is then fitted exactly. With
+    ``coarse = 1`` the trial is judged at half the size, against the target averaged over 2 x 2 pixels
+    (not for yaw: a turn of a round shape changes only its texture, which half the size cannot always
+    judge; the full-size passes after the coarse ones are there for such fine steps)."""
     model, _, out = shipped
     p, bg = out.latents.params, out.latents.bg_color
     b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
@@ -61,9 +64,9 @@ def test_search_recovers_a_known_perturbation(shipped, kind):
     a = math.radians(30.0)
     rot = torch.tensor([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])  # rotates by -30 degrees
     start_params, cfg = {
-        "scale": (_with(truth, scale=truth.scale / 1.1), SearchConfig(scales=(1.1,), shifts=(), yaws=(), rounds=1)),
-        "shift": (_with(truth, position=truth.position - torch.tensor([0.2, 0.0, 0.0])), SearchConfig(scales=(), shifts=(0.2,), yaws=(), rounds=1)),
-        "yaw": (_with(truth, cos_sin=truth.cos_sin @ rot.T), SearchConfig(scales=(), shifts=(), yaws=(30.0,), rounds=1)),
+        "scale": (_with(truth, scale=truth.scale / 1.1), SearchConfig(scales=(1.1,), shifts=(), yaws=(), rounds=1, coarse_rounds=coarse)),
+        "shift": (_with(truth, position=truth.position - torch.tensor([0.2, 0.0, 0.0])), SearchConfig(scales=(), shifts=(0.2,), yaws=(), rounds=1, coarse_rounds=coarse)),
+        "yaw": (_with(truth, cos_sin=truth.cos_sin @ rot.T), SearchConfig(scales=(), shifts=(), yaws=(30.0,), rounds=1, coarse_rounds=coarse)),
     }[kind]
     H, W = b.rgb.shape[-2:]
     with torch.no_grad():
@@ -79,9 +82,10 @@ def test_search_recovers_a_known_perturbation(shipped, kind):
     assert torch.equal(found.composite.instance, target.composite.instance)
 
 
-def test_search_never_fits_worse_and_keeps_everything_else(shipped):
+@pytest.mark.parametrize("coarse", [0, 1, 2])
+def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse):
     model, b, out = shipped
-    found = search_latents(model, out, b, SearchConfig(rounds=2))
+    found = search_latents(model, out, b, SearchConfig(rounds=2, coarse_rounds=coarse))
     before = fit_score(out.composite.image, out.composite.depth, b.rgb, b.depth)
     after = fit_score(found.composite.image, found.composite.depth, b.rgb, b.depth)
     assert bool((after <= before).all()) and bool((after < before).any())
@@ -98,7 +102,8 @@ def test_search_never_fits_worse_and_keeps_everything_else(shipped):
     assert search_latents(model, out, b, SearchConfig(rounds=0)) is out
 
 
-@pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0)])
+@pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0),
+                                 dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1)])
 def test_search_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="search"):
         SearchConfig(**bad)
@@ -117,6 +122,9 @@ def test_evaluation_and_cli_with_search(tmp_path, capsys):
     assert (tmp_path / "s" / "0.json").exists()
     assert main(["evaluate", "shipped", data, "--search", "-1", "--quiet"]) != 0
     assert "search" in capsys.readouterr().err
+    assert main(["evaluate", "shipped", data, "--search", "1", "--search-coarse", "2", "--quiet"]) != 0
+    assert "coarse_rounds must lie in [0, rounds], got 2 of 1" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert "the first 1 at half size" in InferenceConfig.of(search=3, search_coarse=1).describe()
 
 
 def test_color_only_search_ignores_depth(shipped):

@@ -32,6 +32,8 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                         "3-object model, whose last step under-scales; symmetric ones suit a model that does not)")
     g.add_argument("--search-far-clip", action="store_true",
                    help="score the search's trials with the render's depth clipped at the model's far depth, like the sensor's")
+    g.add_argument("--search-coarse", type=int, default=0, metavar="C",
+                   help="run the search's first C rounds at half the image size (a quarter of the rays; default 0)")
     g.add_argument("--refine", type=int, default=0, metavar="K", help="refine all latents for K gradient steps against the training losses")
     g.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default 0.01)")
     g.add_argument("--refine-pose-lr-scale", type=float, help="positions and rotations step this many times faster (default 3)")
@@ -55,7 +57,8 @@ def inference_config(args, has_depth: bool = True):
                               refine_lr=args.refine_lr, refine_pose_lr_scale=args.refine_pose_lr_scale,
                               stop=getattr(args, "stop", False), prune=getattr(args, "prune", False),
                               search_scales=None if args.search_scales is None else floats(args.search_scales, None, "--search-scales"),
-                              search_far_clip=getattr(args, "search_far_clip", False))
+                              search_far_clip=getattr(args, "search_far_clip", False),
+                              search_coarse=getattr(args, "search_coarse", 0))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

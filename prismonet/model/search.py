@@ -17,10 +17,13 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
+from prismonet.geometry.camera import resize_intrinsics
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.render import SceneParams, composite, render_objects
+from prismonet.render.background import plane_depth
 
 
 @dataclass(frozen=True)
@@ -46,8 +49,15 @@ class SearchConfig:
     far_clip: bool = False
     """Score the render with its depth clipped at the model's ``far_depth``, like the sensor's (off by
     default: the recorded search figures were measured without it)."""
+    coarse_rounds: int = 0
+    """The first this many passes render and score at half the image size: a quarter of the rays,
+    against the input averaged over 2 x 2 pixels, the camera scaled by ``resize_intrinsics``. The later
+    passes run at full size; a scene whose full-size score the coarse passes made worse keeps the
+    encoder's latents, so the search still never fits worse."""
 
     def __post_init__(self) -> None:
+        if not 0 <= self.coarse_rounds <= max(self.rounds, 0):
+            raise ValueError(f"search: coarse_rounds must lie in [0, rounds], got {self.coarse_rounds} of {self.rounds}")
         if self.rounds < 0 or any(s <= 0 for s in self.scales) or self.w_image < 0 or self.w_depth < 0 or not 0 < self.decay <= 1:
             raise ValueError(f"search: rounds and weights must be non-negative and scales positive, got {self}")
 
@@ -75,60 +85,128 @@ def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch
             yield scale, position, torch.stack([c * x - s * y, s * x + c * y], -1)
 
 
-@torch.no_grad()
-def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchConfig(), use_depth: bool = True) -> ModelOutput:
-    """``out`` (the model's output on ``batch``) with each slot's scale, position and yaw improved by
-    coordinate search; every scene's score is at most the one it started with."""
-    if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials):
-        return out
-    p = out.latents.params
-    B, N = p.scale.shape
-    H, W = batch.rgb.shape[-2:]
-    target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
-    far = model.cfg.far_depth if cfg.far_clip else None
-    bg = out.latents.bg_color
-    depth, mask, color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
-    scale, position, cos_sin, z_sh = p.scale.clone(), p.position.clone(), p.cos_sin.clone(), p.z_sh.clone()
-    comp = composite(depth, mask, color, bg, out.bg_depth)
-    best = fit_score(comp.image, comp.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth, far)
-    settings = model.render_settings()
-    one = lambda t, k: None if t is None else t[:, k : k + 1]
-    codes = model.prior.latents.to(p.z_sh.dtype)
-    cats = torch.as_tensor(model.prior.category_ids)
+class _Level:
+    """The per-object renders of B scenes at one image size, and each scene's fit score against the
+    input at that size: what a trial changes and is judged by."""
 
-    def attempt(k, z_try, s_try, p_try, cs_try):
-        """Render slot ``k`` alone with the trial latents, keep them per scene where the score falls."""
-        nonlocal best
-        s_try = s_try.clamp(max=model.cfg.scale_range[1])  # the encoder's own bound
-        q = SceneParams(z_try[:, None], one(p.z_tex, k), p_try[:, None], cs_try[:, None], s_try[:, None], one(p.axis, k),
-                        one(p.active, k))
-        obj = render_objects(model.sdf_fn, model.color_fn, q, batch.K, batch.T_world_cam, H, W, settings)
-        d_try, m_try, c_try = depth.clone(), mask.clone(), color.clone()
-        d_try[:, k], m_try[:, k], c_try[:, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
-        c = composite(d_try, m_try, c_try, bg, out.bg_depth)
-        score = fit_score(c.image, c.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth, far)
-        win = score < best
-        best = torch.where(win, score, best)
-        w = win.view(B, 1, 1)
-        depth[:, k] = torch.where(w, d_try[:, k], depth[:, k])
-        mask[:, k] = torch.where(w, m_try[:, k], mask[:, k])
-        color[:, k] = torch.where(w[:, None], c_try[:, k], color[:, k])
-        scale[:, k] = torch.where(win, s_try, scale[:, k])
-        position[:, k] = torch.where(win[:, None], p_try, position[:, k])
-        cos_sin[:, k] = torch.where(win[:, None], cs_try, cos_sin[:, k])
-        z_sh[:, k] = torch.where(win[:, None], z_try, z_sh[:, k])
+    def __init__(self, model, bg: torch.Tensor, bg_depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                 rgb: torch.Tensor, target_depth: torch.Tensor | None, cfg: SearchConfig, far: float | None) -> None:
+        self.model, self.bg, self.bg_depth, self.K, self.T_world_cam = model, bg, bg_depth, K, T_world_cam
+        self.rgb, self.target_depth, self.cfg, self.far = rgb, target_depth, cfg, far
+        self.H, self.W = rgb.shape[-2:]
+        self.settings = model.render_settings()
 
-    for r in range(cfg.rounds):
-        for k in range(N):
+    def score(self, depth: torch.Tensor, mask: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
+        c = composite(depth, mask, color, self.bg, self.bg_depth)
+        return fit_score(c.image, c.depth, self.rgb, self.target_depth, self.cfg.w_image, self.cfg.w_depth, self.far)
+
+    def set_renders(self, depth: torch.Tensor, mask: torch.Tensor, color: torch.Tensor) -> None:
+        self.depth, self.mask, self.color = depth, mask, color
+        self.best = self.score(depth, mask, color)
+
+    def render(self, params: SceneParams):
+        """``(depth, mask, color)`` of every slot of ``params`` at this level's size."""
+        obj = render_objects(self.model.sdf_fn, self.model.color_fn, params, self.K, self.T_world_cam, self.H, self.W,
+                             self.settings)
+        return obj.depth, obj.mask, obj.color
+
+    def attempt(self, state: "_State", k: int, z_try, s_try, p_try, cs_try) -> None:
+        """Render slot ``k`` alone with the trial latents; keep them per scene where the score falls."""
+        s_try = s_try.clamp(max=self.model.cfg.scale_range[1])  # the encoder's own bound
+        d, m, c = self.render(state.slot(k, z_try, s_try, p_try, cs_try))
+        d_try, m_try, c_try = self.depth.clone(), self.mask.clone(), self.color.clone()
+        d_try[:, k], m_try[:, k], c_try[:, k] = d[:, 0], m[:, 0], c[:, 0]
+        score = self.score(d_try, m_try, c_try)
+        win = score < self.best
+        self.best = torch.where(win, score, self.best)
+        w = win.view(-1, 1, 1)
+        self.depth[:, k] = torch.where(w, d_try[:, k], self.depth[:, k])
+        self.mask[:, k] = torch.where(w, m_try[:, k], self.mask[:, k])
+        self.color[:, k] = torch.where(w[:, None], c_try[:, k], self.color[:, k])
+        state.keep(win, k, z_try, s_try, p_try, cs_try)
+
+    def run_round(self, state: "_State", r: int) -> None:
+        """One pass over all slots: shape trials (first pass, if asked), scales, shifts, yaws."""
+        cfg, p = self.cfg, state.start
+        codes = self.model.prior.latents.to(p.z_sh.dtype)
+        cats = torch.as_tensor(self.model.prior.category_ids)
+        for k in range(state.scale.shape[1]):
             if p.active is not None and not p.active[:, k].any():
                 continue  # never decoded (a stopped encoder): nothing to search
             if cfg.shape_trials and r == 0:
                 for c in torch.unique(cats):
                     sel = codes[cats == c]  # (n_c, D)
-                    nearest = sel[torch.cdist(z_sh[:, k], sel).argmin(1)]  # (B, D)
-                    attempt(k, nearest, scale[:, k], position[:, k], cos_sin[:, k])
-            for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, scale[:, k], position[:, k], cos_sin[:, k]):
-                attempt(k, z_sh[:, k], s_try, p_try, cs_try)
-    params = SceneParams(z_sh, p.z_tex, position, cos_sin, scale, p.axis, p.active)
-    comp = composite(depth, mask, color, bg, out.bg_depth)
-    return ModelOutput(SceneLatents(params, bg), comp, depth, mask, color, out.bg_depth, None, slot_steps=out.slot_steps)
+                    nearest = sel[torch.cdist(state.z_sh[:, k], sel).argmin(1)]  # (B, D)
+                    self.attempt(state, k, nearest, state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
+            for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, state.scale[:, k], state.position[:, k], state.cos_sin[:, k]):
+                self.attempt(state, k, state.z_sh[:, k], s_try, p_try, cs_try)
+
+
+class _State:
+    """The searched latents (copies of the encoder's, changed in place as trials win)."""
+
+    def __init__(self, start: SceneParams) -> None:
+        self.start = start
+        self.scale, self.position = start.scale.clone(), start.position.clone()
+        self.cos_sin, self.z_sh = start.cos_sin.clone(), start.z_sh.clone()
+
+    def params(self) -> SceneParams:
+        p = self.start
+        return SceneParams(self.z_sh, p.z_tex, self.position, self.cos_sin, self.scale, p.axis, p.active)
+
+    def slot(self, k: int, z_sh, scale, position, cos_sin) -> SceneParams:
+        """Slot ``k`` alone (K = 1) with the given latents."""
+        p = self.start
+        one = lambda t: None if t is None else t[:, k : k + 1]
+        return SceneParams(z_sh[:, None], one(p.z_tex), position[:, None], cos_sin[:, None], scale[:, None], one(p.axis),
+                           one(p.active))
+
+    def keep(self, win: torch.Tensor, k: int, z_sh, scale, position, cos_sin) -> None:
+        self.scale[:, k] = torch.where(win, scale, self.scale[:, k])
+        self.position[:, k] = torch.where(win[:, None], position, self.position[:, k])
+        self.cos_sin[:, k] = torch.where(win[:, None], cos_sin, self.cos_sin[:, k])
+        self.z_sh[:, k] = torch.where(win[:, None], z_sh, self.z_sh[:, k])
+
+    def revert(self, scenes: torch.Tensor) -> None:
+        """Back to the start latents in the scenes ``scenes`` (``(B,)`` bool)."""
+        p = self.start
+        for name in ("scale", "position", "cos_sin", "z_sh"):
+            t, t0 = getattr(self, name), getattr(p, name)
+            t[scenes] = t0[scenes]
+
+
+@torch.no_grad()
+def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchConfig(), use_depth: bool = True) -> ModelOutput:
+    """``out`` (the model's output on ``batch``) with each slot's scale, position and yaw improved by
+    coordinate search; every scene's score is at most the one it started with.
+
+    The first ``cfg.coarse_rounds`` passes render and score at half the size (``batch.ground_z`` is
+    read for the ground's depth there); the rest, and the score that decides what is kept, at full size."""
+    if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials):
+        return out
+    p = out.latents.params
+    target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
+    far = model.cfg.far_depth if cfg.far_clip else None
+    bg = out.latents.bg_color
+    state = _State(p)
+    full = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far)
+    full.set_renders(out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone())
+    if cfg.coarse_rounds:
+        H, W = batch.rgb.shape[-2:]
+        Kc = resize_intrinsics(batch.K, 0.5, 0.5)  # pixel (i, j) of the half-size image covers pixels 2i..2i+1
+        coarse = _Level(model, bg, plane_depth(Kc, batch.T_world_cam, H // 2, W // 2, batch.ground_z, model.cfg.far_depth),
+                        Kc, batch.T_world_cam, F.avg_pool2d(batch.rgb, 2),
+                        None if target_depth is None else F.avg_pool2d(target_depth, 2), cfg, far)
+        coarse.set_renders(*coarse.render(p))
+        for r in range(cfg.coarse_rounds):
+            coarse.run_round(state, r)
+        d, m, c = full.render(state.params())
+        worse = full.score(d, m, c) > full.best  # a coarse win that the full-size score does not confirm
+        state.revert(worse)
+        w = worse.view(-1, 1, 1, 1)
+        full.set_renders(torch.where(w, full.depth, d), torch.where(w, full.mask, m), torch.where(w[..., None], full.color, c))
+    for r in range(cfg.coarse_rounds, cfg.rounds):
+        full.run_round(state, r)
+    comp = composite(full.depth, full.mask, full.color, bg, out.bg_depth)
+    return ModelOutput(SceneLatents(state.params(), bg), comp, full.depth, full.mask, full.color, out.bg_depth, None,
+                       slot_steps=out.slot_steps)
