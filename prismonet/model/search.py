@@ -22,8 +22,8 @@ import torch.nn.functional as F
 from prismonet.geometry.camera import resize_intrinsics
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
+from prismonet.model.refine import render_latents
 from prismonet.render import SceneParams, composite, render_objects
-from prismonet.render.background import plane_depth
 
 
 @dataclass(frozen=True)
@@ -194,17 +194,19 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     if cfg.coarse_rounds:
         H, W = batch.rgb.shape[-2:]
         Kc = resize_intrinsics(batch.K, 0.5, 0.5)  # pixel (i, j) of the half-size image covers pixels 2i..2i+1
-        coarse = _Level(model, bg, plane_depth(Kc, batch.T_world_cam, H // 2, W // 2, batch.ground_z, model.cfg.far_depth),
-                        Kc, batch.T_world_cam, F.avg_pool2d(batch.rgb, 2),
+        half = render_latents(model, p, bg, Kc, batch.T_world_cam, batch.ground_z, H // 2, W // 2)
+        coarse = _Level(model, bg, half.bg_depth, Kc, batch.T_world_cam, F.avg_pool2d(batch.rgb, 2),
                         None if target_depth is None else F.avg_pool2d(target_depth, 2), cfg, far)
-        coarse.set_renders(*coarse.render(p))
+        coarse.set_renders(half.obj_depth, half.obj_mask, half.obj_color)
         for r in range(cfg.coarse_rounds):
             coarse.run_round(state, r)
         d, m, c = full.render(state.params())
-        worse = full.score(d, m, c) > full.best  # a coarse win that the full-size score does not confirm
+        score = full.score(d, m, c)
+        worse = score > full.best  # a coarse win that the full-size score does not confirm
         state.revert(worse)
         w = worse.view(-1, 1, 1, 1)
-        full.set_renders(torch.where(w, full.depth, d), torch.where(w, full.mask, m), torch.where(w[..., None], full.color, c))
+        full.depth, full.mask = torch.where(w, full.depth, d), torch.where(w, full.mask, m)
+        full.color, full.best = torch.where(w[..., None], full.color, c), torch.where(worse, full.best, score)
     for r in range(cfg.coarse_rounds, cfg.rounds):
         full.run_round(state, r)
     comp = composite(full.depth, full.mask, full.color, bg, out.bg_depth)
