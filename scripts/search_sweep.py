@@ -46,6 +46,7 @@ def main() -> None:
     ap.add_argument("--refine", type=int, default=0, metavar="K", help="refinement steps after the search")
     ap.add_argument("--fit-color", type=int, default=0, metavar="K", help="colour-fit steps after the search and refinement")
     ap.add_argument("--passes", type=int, default=1, help="run every setting this many times, interleaved")
+    ap.add_argument("--batch", type=int, default=16, help="scenes per batch (default 16, as evaluate's)")
     args = ap.parse_args()
     runs = []
     for text in args.settings:  # validate all before running any
@@ -61,17 +62,17 @@ def main() -> None:
     for p in range(args.passes):
         for text, search_cfg, refine_cfg, color_cfg in runs:
             with torch.no_grad():
-                r = evaluate_model(model, ds, limit=args.limit, progress=False, loss_cfg=training_loss_config(info),
+                r = evaluate_model(model, ds, batch_size=args.batch, limit=args.limit, progress=False, loss_cfg=training_loss_config(info),
                                    inference=InferenceConfig(search=search_cfg, refine=refine_cfg, color_fit=color_cfg))
             times[text].append(r["seconds_per_scene"])
             print(json.dumps({"setting": text, "pass": p + 1, "refine": refine_cfg.steps, "fit_color": color_cfg.steps,
                               **{k: round(r[k], 4) for k in KEYS}}), flush=True)
     if args.passes > 1:
         base = statistics.median(times[runs[0][0]])
-        print(f"\n| setting | ms per scene ({args.passes} passes) | median | vs {runs[0][0]!r} |\n|---|---|---|---|")
+        print(f"\n| setting | ms per scene ({args.passes} passes) | median | speed-up over {runs[0][0] or '(default)'!r} |\n|---|---|---|---|")
         for text, ts in times.items():
             med = statistics.median(ts)
-            print(f"| {text or '(default)'} | {' / '.join(f'{1000 * t:.0f}' for t in ts)} | {1000 * med:.0f} | {med / base:.1f}x |")
+            print(f"| {text or '(default)'} | {' / '.join(f'{1000 * t:.0f}' for t in ts)} | {1000 * med:.0f} | {base / med:.2f}x |")
 
 
 if __name__ == "__main__":

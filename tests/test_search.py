@@ -49,13 +49,15 @@ def test_fit_score_clips_the_render_like_the_sensor():
     assert fit_score(rgb, depth, rgb, target, w_depth=1.0, far_depth=12.0).item() == pytest.approx(1 / 4)
 
 
-@pytest.mark.parametrize("kind, coarse", [("scale", 0), ("shift", 0), ("yaw", 0), ("scale", 1), ("shift", 1)])
-def test_search_recovers_a_known_perturbation(shipped, kind, coarse):
+@pytest.mark.parametrize("kind, coarse, grid", [("scale", 0, 0), ("shift", 0, 0), ("yaw", 0, 0), ("scale", 1, 0), ("shift", 1, 0),
+                                                ("scale", 0, 32), ("shift", 1, 32)])
+def test_search_recovers_a_known_perturbation(shipped, kind, coarse, grid):
     """Render the model's own latents as the target, perturb every slot by exactly one trial step,
     and a search with that one trial must undo it: the scene is then fitted exactly. With
     ``coarse = 1`` the trial is judged at half the size, against the target averaged over 2 x 2 pixels
     (not for yaw: a turn of a round shape changes only its texture, which half the size cannot always
-    judge; the full-size passes after the coarse ones are there for such fine steps)."""
+    judge; the full-size passes after the coarse ones are there for such fine steps). With ``grid`` the
+    trials render from the shapes tabulated at 32 nodes per axis, which must judge them the same."""
     model, _, out = shipped
     p, bg = out.latents.params, out.latents.bg_color
     b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
@@ -64,9 +66,9 @@ def test_search_recovers_a_known_perturbation(shipped, kind, coarse):
     a = math.radians(30.0)
     rot = torch.tensor([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])  # rotates by -30 degrees
     start_params, cfg = {
-        "scale": (_with(truth, scale=truth.scale / 1.1), SearchConfig(scales=(1.1,), shifts=(), yaws=(), rounds=1, coarse_rounds=coarse)),
-        "shift": (_with(truth, position=truth.position - torch.tensor([0.2, 0.0, 0.0])), SearchConfig(scales=(), shifts=(0.2,), yaws=(), rounds=1, coarse_rounds=coarse)),
-        "yaw": (_with(truth, cos_sin=truth.cos_sin @ rot.T), SearchConfig(scales=(), shifts=(), yaws=(30.0,), rounds=1, coarse_rounds=coarse)),
+        "scale": (_with(truth, scale=truth.scale / 1.1), SearchConfig(scales=(1.1,), shifts=(), yaws=(), rounds=1, coarse_rounds=coarse, grid=grid)),
+        "shift": (_with(truth, position=truth.position - torch.tensor([0.2, 0.0, 0.0])), SearchConfig(scales=(), shifts=(0.2,), yaws=(), rounds=1, coarse_rounds=coarse, grid=grid)),
+        "yaw": (_with(truth, cos_sin=truth.cos_sin @ rot.T), SearchConfig(scales=(), shifts=(), yaws=(30.0,), rounds=1, coarse_rounds=coarse, grid=grid)),
     }[kind]
     H, W = b.rgb.shape[-2:]
     with torch.no_grad():
@@ -82,10 +84,11 @@ def test_search_recovers_a_known_perturbation(shipped, kind, coarse):
     assert torch.equal(found.composite.instance, target.composite.instance)
 
 
-@pytest.mark.parametrize("coarse", [0, 1, 2])
-def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse):
+@pytest.mark.parametrize("coarse, grid", [(0, 0), (1, 0), (2, 0), (0, 24), (1, 16)])
+def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid):
+    """Also with the trials rendered from tabulated shapes (``grid``): the result is the MLP's render."""
     model, b, out = shipped
-    found = search_latents(model, out, b, SearchConfig(rounds=2, coarse_rounds=coarse))
+    found = search_latents(model, out, b, SearchConfig(rounds=2, coarse_rounds=coarse, grid=grid))
     before = fit_score(out.composite.image, out.composite.depth, b.rgb, b.depth)
     after = fit_score(found.composite.image, found.composite.depth, b.rgb, b.depth)
     assert bool((after <= before).all()) and bool((after < before).any())
@@ -103,7 +106,8 @@ def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse):
 
 
 @pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0),
-                                 dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1)])
+                                 dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1), dict(grid=-1), dict(grid=1),
+                                 dict(grid=16, shape_trials=True)])
 def test_search_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="search"):
         SearchConfig(**bad)
@@ -125,6 +129,7 @@ def test_evaluation_and_cli_with_search(tmp_path, capsys):
     assert main(["evaluate", "shipped", data, "--search", "1", "--search-coarse", "2", "--quiet"]) != 0
     assert "coarse_rounds must lie in [0, rounds], got 2 of 1" in capsys.readouterr().err.strip().splitlines()[-1]
     assert "the first 1 at half size" in InferenceConfig.of(search=3, search_coarse=1).describe()
+    assert "shapes tabulated at 24^3" in InferenceConfig.of(search=3, search_grid=24).describe()
 
 
 def test_color_only_search_ignores_depth(shipped):
@@ -179,3 +184,15 @@ def test_shape_trials_recover_the_right_category(shipped):
     z = found.latents.params.z_sh
     assert torch.allclose(z[visible], cube.expand(int(visible.sum()), -1))
     assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)
+
+
+def test_ab_script_refuses_an_unknown_revision_in_one_line():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "search_ab.py"
+    r = subprocess.run([sys.executable, str(script), "no-such-revision", "no_data_needed"], capture_output=True, text=True)
+    assert r.returncode == 1
+    last = r.stderr.strip().splitlines()[-1]
+    assert "search_ab: error: no prismonet/model/search.py at 'no-such-revision'" in last and "Traceback" not in r.stderr

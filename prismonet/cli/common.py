@@ -34,6 +34,9 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                    help="score the search's trials with the render's depth clipped at the model's far depth, like the sensor's")
     g.add_argument("--search-coarse", type=int, default=0, metavar="C",
                    help="run the search's first C rounds at half the image size (a quarter of the rays; default 0)")
+    g.add_argument("--search-grid", type=int, default=0, metavar="G",
+                   help="render the search's trials from each slot's shape tabulated at G^3 points instead of the MLP "
+                        "(the result is rendered with the MLP; default 0: the MLP throughout)")
     g.add_argument("--refine", type=int, default=0, metavar="K", help="refine all latents for K gradient steps against the training losses")
     g.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default 0.01)")
     g.add_argument("--refine-pose-lr-scale", type=float, help="positions and rotations step this many times faster (default 3)")
@@ -58,7 +61,8 @@ def inference_config(args, has_depth: bool = True):
                               stop=getattr(args, "stop", False), prune=getattr(args, "prune", False),
                               search_scales=None if args.search_scales is None else floats(args.search_scales, None, "--search-scales"),
                               search_far_clip=getattr(args, "search_far_clip", False),
-                              search_coarse=getattr(args, "search_coarse", 0))
+                              search_coarse=getattr(args, "search_coarse", 0),
+                              search_grid=getattr(args, "search_grid", 0))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

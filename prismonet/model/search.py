@@ -14,7 +14,7 @@ single-object render, no gradients.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -22,8 +22,9 @@ import torch.nn.functional as F
 from prismonet.geometry.camera import resize_intrinsics
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
-from prismonet.model.refine import render_latents
 from prismonet.render import SceneParams, composite, render_objects
+from prismonet.render.background import plane_depth
+from prismonet.shapes.sdf_grid import SdfGrid
 
 
 @dataclass(frozen=True)
@@ -54,10 +55,17 @@ class SearchConfig:
     against the input averaged over 2 x 2 pixels, the camera scaled by ``resize_intrinsics``. The later
     passes run at full size; a scene whose full-size score the coarse passes made worse keeps the
     encoder's latents, so the search still never fits worse."""
+    grid: int = 0
+    """With G > 0 the trials render each slot's shape from a ``G^3`` table of its signed distances
+    (``SdfGrid``, tabulated once per search) instead of the MLP; the result is then rendered once with the
+    MLP, and a scene whose score that makes worse than the encoder's keeps the encoder's latents. 0: the
+    MLP throughout. Needs fixed shapes, so not with ``shape_trials``."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.coarse_rounds <= max(self.rounds, 0):
             raise ValueError(f"search: coarse_rounds must lie in [0, rounds], got {self.coarse_rounds} of {self.rounds}")
+        if self.grid < 0 or self.grid == 1 or (self.grid and self.shape_trials):
+            raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, and not with shape_trials, got {self.grid}")
         if self.rounds < 0 or any(s <= 0 for s in self.scales) or self.w_image < 0 or self.w_depth < 0 or not 0 < self.decay <= 1:
             raise ValueError(f"search: rounds and weights must be non-negative and scales positive, got {self}")
 
@@ -87,14 +95,18 @@ def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch
 
 class _Level:
     """The per-object renders of B scenes at one image size, and each scene's fit score against the
-    input at that size: what a trial changes and is judged by."""
+    input at that size: what a trial changes and is judged by. With ``shapes`` the objects render from
+    its table (slot ``k`` of scene ``b`` is row ``b * K + k``), else with the model's MLP."""
 
     def __init__(self, model, bg: torch.Tensor, bg_depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
-                 rgb: torch.Tensor, target_depth: torch.Tensor | None, cfg: SearchConfig, far: float | None) -> None:
+                 rgb: torch.Tensor, target_depth: torch.Tensor | None, cfg: SearchConfig, far: float | None,
+                 shapes: SdfGrid | None = None) -> None:
         self.model, self.bg, self.bg_depth, self.K, self.T_world_cam = model, bg, bg_depth, K, T_world_cam
         self.rgb, self.target_depth, self.cfg, self.far = rgb, target_depth, cfg, far
         self.H, self.W = rgb.shape[-2:]
-        self.settings = model.render_settings()
+        self.settings = replace(model.render_settings(), soft_mask_tau=0.0)  # no soft silhouettes are read here
+        self.sdf_fn = model.sdf_fn if shapes is None else shapes
+        self.codes = None if shapes is None else shapes.codes.view(bg.shape[0], -1, 1)
 
     def score(self, depth: torch.Tensor, mask: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
         c = composite(depth, mask, color, self.bg, self.bg_depth)
@@ -104,16 +116,30 @@ class _Level:
         self.depth, self.mask, self.color = depth, mask, color
         self.best = self.score(depth, mask, color)
 
-    def render(self, params: SceneParams):
-        """``(depth, mask, color)`` of every slot of ``params`` at this level's size."""
-        obj = render_objects(self.model.sdf_fn, self.model.color_fn, params, self.K, self.T_world_cam, self.H, self.W,
+    def render(self, params: SceneParams, k: int | None = None):
+        """``(depth, mask, color)`` of every slot of ``params`` at this level's size (of slot ``k`` alone
+        when ``params`` holds only that slot)."""
+        if self.codes is not None:
+            params = replace(params, z_sh=self.codes if k is None else self.codes[:, k : k + 1])
+        obj = render_objects(self.sdf_fn, self.model.color_fn, params, self.K, self.T_world_cam, self.H, self.W,
                              self.settings)
         return obj.depth, obj.mask, obj.color
+
+    def confirm(self, state: "_State", renders, start_renders, start_best: torch.Tensor) -> None:
+        """Take ``renders`` of ``state``'s latents as this level's, except in the scenes they score worse
+        than ``start_best`` (the start's score): those revert to the start latents and ``start_renders``."""
+        score = self.score(*renders)
+        worse = score > start_best
+        state.revert(worse)
+        w = worse.view(-1, 1, 1, 1)
+        (d, m, c), (d0, m0, c0) = renders, start_renders
+        self.depth, self.mask = torch.where(w, d0, d), torch.where(w, m0, m)
+        self.color, self.best = torch.where(w[..., None], c0, c), torch.where(worse, start_best, score)
 
     def attempt(self, state: "_State", k: int, z_try, s_try, p_try, cs_try) -> None:
         """Render slot ``k`` alone with the trial latents; keep them per scene where the score falls."""
         s_try = s_try.clamp(max=self.model.cfg.scale_range[1])  # the encoder's own bound
-        d, m, c = self.render(state.slot(k, z_try, s_try, p_try, cs_try))
+        d, m, c = self.render(state.slot(k, z_try, s_try, p_try, cs_try), k)
         d_try, m_try, c_try = self.depth.clone(), self.mask.clone(), self.color.clone()
         d_try[:, k], m_try[:, k], c_try[:, k] = d[:, 0], m[:, 0], c[:, 0]
         score = self.score(d_try, m_try, c_try)
@@ -181,7 +207,8 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     coordinate search; every scene's score is at most the one it started with.
 
     The first ``cfg.coarse_rounds`` passes render and score at half the size (``batch.ground_z`` is
-    read for the ground's depth there); the rest, and the score that decides what is kept, at full size."""
+    read for the ground's depth there); the rest, and the score that decides what is kept, at full size.
+    With ``cfg.grid`` the trials render from tabulated shapes and the result is rendered with the MLP."""
     if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials):
         return out
     p = out.latents.params
@@ -189,26 +216,30 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     far = model.cfg.far_depth if cfg.far_clip else None
     bg = out.latents.bg_color
     state = _State(p)
-    full = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far)
-    full.set_renders(out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone())
+    B, Kslots = p.z_sh.shape[:2]
+    shapes = SdfGrid.tabulate(model.sdf_fn, p.z_sh.reshape(B * Kslots, -1), model.prior.bounds, cfg.grid) if cfg.grid else None
+    start = (out.obj_depth, out.obj_mask, out.obj_color)  # the MLP's renders of the encoder's latents
+    exact = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far)
+    exact.set_renders(*(t.clone() for t in start))
+    full = exact
+    if shapes is not None:
+        full = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far, shapes)
+        full.set_renders(*full.render(p))
     if cfg.coarse_rounds:
         H, W = batch.rgb.shape[-2:]
         Kc = resize_intrinsics(batch.K, 0.5, 0.5)  # pixel (i, j) of the half-size image covers pixels 2i..2i+1
-        half = render_latents(model, p, bg, Kc, batch.T_world_cam, batch.ground_z, H // 2, W // 2)
-        coarse = _Level(model, bg, half.bg_depth, Kc, batch.T_world_cam, F.avg_pool2d(batch.rgb, 2),
-                        None if target_depth is None else F.avg_pool2d(target_depth, 2), cfg, far)
-        coarse.set_renders(half.obj_depth, half.obj_mask, half.obj_color)
+        bg_depth = plane_depth(Kc, batch.T_world_cam, H // 2, W // 2, batch.ground_z, model.cfg.far_depth)
+        coarse = _Level(model, bg, bg_depth, Kc, batch.T_world_cam, F.avg_pool2d(batch.rgb, 2),
+                        None if target_depth is None else F.avg_pool2d(target_depth, 2), cfg, far, shapes)
+        coarse.set_renders(*coarse.render(p))
         for r in range(cfg.coarse_rounds):
             coarse.run_round(state, r)
-        d, m, c = full.render(state.params())
-        score = full.score(d, m, c)
-        worse = score > full.best  # a coarse win that the full-size score does not confirm
-        state.revert(worse)
-        w = worse.view(-1, 1, 1, 1)
-        full.depth, full.mask = torch.where(w, full.depth, d), torch.where(w, full.mask, m)
-        full.color, full.best = torch.where(w[..., None], full.color, c), torch.where(worse, full.best, score)
+        # a coarse win that the full-size score does not confirm reverts
+        full.confirm(state, full.render(state.params()), (full.depth, full.mask, full.color), full.best)
     for r in range(cfg.coarse_rounds, cfg.rounds):
         full.run_round(state, r)
-    comp = composite(full.depth, full.mask, full.color, bg, out.bg_depth)
-    return ModelOutput(SceneLatents(state.params(), bg), comp, full.depth, full.mask, full.color, out.bg_depth, None,
+    if shapes is not None:  # the MLP's render decides, against the encoder's own
+        exact.confirm(state, exact.render(state.params()), start, exact.best)
+    comp = composite(exact.depth, exact.mask, exact.color, bg, out.bg_depth)
+    return ModelOutput(SceneLatents(state.params(), bg), comp, exact.depth, exact.mask, exact.color, out.bg_depth, None,
                        slot_steps=out.slot_steps)
