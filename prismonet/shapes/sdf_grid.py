@@ -40,8 +40,7 @@ class SdfGrid:
         ``resolution^3`` lattice nodes of ``box``."""
         if resolution < 2:
             raise ValueError(f"SdfGrid: resolution must be at least 2 nodes per axis, got {resolution}")
-        lo, hi = (torch.tensor(b, dtype=z.dtype) for b in box)
-        axes = [torch.linspace(float(lo[i]), float(hi[i]), resolution, dtype=z.dtype) for i in range(3)]
+        axes = [torch.linspace(box[0][i], box[1][i], resolution, dtype=z.dtype) for i in range(3)]
         nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(1, -1, 3)  # (1, G^3, 3)
         G3 = nodes.shape[1]
         rows = max(1, TABULATE_POINTS // G3)
