@@ -29,6 +29,7 @@ MODELS = {
     "cars": "cars_model",
     "tableware": "tableware_model",
     "clevr1to8": "clevr1to8_model",
+    "clevr1to8_30k": "clevr1to8_30k_model",
     "tabletop": "tabletop_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
@@ -53,6 +54,7 @@ MODEL_SAMPLES = {
     "cars": "samples/cars",
     "tableware": "samples/tableware",
     "clevr1to8": "samples/clevr1to8",
+    "clevr1to8_30k": "samples/clevr1to8",
     "tabletop": "samples/tabletop",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
