@@ -53,6 +53,12 @@ def test_short_training_reduces_loss_and_gives_finite_metrics(data, tmp_path):
     before, after = loss(initial), loss(trained)
     assert after < 0.8 * before, (before, after)
     assert summary["nonfinite"] == 0 and (run / "images" / "step_0000060.png").is_file()
+    import cv2
+
+    from prismonet.viz.decomposition import LABEL_HEIGHT
+
+    grid = cv2.imread(str(run / "images" / "step_0000060.png"))  # 4 scenes x 5 labelled 128-px panels
+    assert grid.shape == (4 * (LABEL_HEIGHT + 128), 5 * 128, 3) and (grid[0, :, :] == 255).all()  # white label strips
     assert any((run / "tb").iterdir())
     res = evaluate_model(trained, SceneDataset(data, "test"), batch_size=8, progress=False)
     assert all(math.isfinite(res[k]) for k in ("AP0.5", "AR0.5", "PSNR", "SSIM", "depth_RMSE", "ARI"))

@@ -225,20 +225,21 @@ def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tens
 
 
 def image_grid(batch, out, path: Path, n: int = 4) -> None:
-    """PNG: per scene, input | reconstruction | target depth | rendered depth | instances."""
-    import cv2
+    """PNG: per scene, input | reconstruction | depth target | depth | instances, each panel labelled."""
     import numpy as np
 
     from prismonet.viz.contact_sheet import colorize_depth, colorize_instances
+    from prismonet.viz.decomposition import labelled_panel
 
     rows = []
     for i in range(min(n, len(batch))):
         to8 = lambda t: (t.detach().clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
         d_gt, d = batch.depth[i, 0].numpy(), out.composite.depth[i, 0].detach().numpy()
         lo, hi = float(d_gt[d_gt > 0].min()), float(d_gt.max())
-        panels = [to8(batch.rgb[i]), to8(out.composite.image[i]), colorize_depth(d_gt, lo, hi), colorize_depth(d, lo, hi),
-                  colorize_instances(out.composite.instance[i].numpy())]
-        rows.append(np.concatenate([cv2.resize(p, (128, 128), interpolation=cv2.INTER_NEAREST) for p in panels], 1))
+        panels = {"input": to8(batch.rgb[i]), "reconstruction": to8(out.composite.image[i]),
+                  "depth target": colorize_depth(d_gt, lo, hi), "depth": colorize_depth(d, lo, hi),
+                  "instances": colorize_instances(out.composite.instance[i].numpy())}
+        rows.append(np.concatenate([labelled_panel(p, name, (128, 128)) for name, p in panels.items()], 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     write_image(path, np.concatenate(rows, 0)[..., ::-1])
 

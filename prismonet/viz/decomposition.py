@@ -26,7 +26,7 @@ def _text(img: np.ndarray, text: str, x: int, y: int, scale: float = 0.42, color
     cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
 
 
-def _panel(tile: np.ndarray, label: str, size: tuple[int, int], dim: bool = False) -> np.ndarray:
+def labelled_panel(tile: np.ndarray, label: str, size: tuple[int, int], dim: bool = False) -> np.ndarray:
     """``tile`` scaled to ``size`` (nearest, so pixels stay visible) under a label strip; ``dim``: washed out."""
     import cv2
 
@@ -68,7 +68,7 @@ def _object_panels(out, i: int, size, min_pixels: int) -> list[np.ndarray]:
                           out.latents.bg_color[i : i + 1], out.bg_depth[i : i + 1])
         n = int(visible[k])
         counted = n >= min_pixels
-        panels.append(_panel(_u8(alone.image[0]), f"slot {k + 1}: {n} px" + ("" if counted else ", not counted"), size, dim=not counted))
+        panels.append(labelled_panel(_u8(alone.image[0]), f"slot {k + 1}: {n} px" + ("" if counted else ", not counted"), size, dim=not counted))
     return panels
 
 
@@ -98,12 +98,12 @@ def decomposition_figure(image: torch.Tensor, out, index: int, path: str | Path,
     if depth_gt is not None:
         g = depth_gt[i, 0].numpy()
         lo, hi = (float(g[g > 0].min()), float(g.max())) if (g > 0).any() else (lo, hi)
-    top = [_panel(_u8(image[i]), "input", size), _panel(_u8(out.composite.image[i]), "reconstruction", size)]
+    top = [labelled_panel(_u8(image[i]), "input", size), labelled_panel(_u8(out.composite.image[i]), "reconstruction", size)]
     if photo is not None:
-        top.insert(0, _panel(_photo_tile(photo, photo_outline, size), "photo (model's view outlined)" if photo_outline is not None else "photo", size))
+        top.insert(0, labelled_panel(_photo_tile(photo, photo_outline, size), "photo (model's view outlined)" if photo_outline is not None else "photo", size))
     if depth_gt is not None:
-        top.append(_panel(colorize_depth(depth_gt[i, 0].numpy(), lo, hi), "depth target", size))
-    top += [_panel(colorize_depth(d, lo, hi), "depth", size), _panel(colorize_instances(out.composite.instance[i].numpy()), "instances", size)]
+        top.append(labelled_panel(colorize_depth(depth_gt[i, 0].numpy(), lo, hi), "depth target", size))
+    top += [labelled_panel(colorize_depth(d, lo, hi), "depth", size), labelled_panel(colorize_instances(out.composite.instance[i].numpy()), "instances", size)]
     bottom = _object_panels(out, i, size, min_pixels)
     blank = np.full_like(top[0], 255)
     cols = max(len(top), len(bottom))

@@ -8,7 +8,7 @@ import numpy as np
 
 from prismonet.files import write_image
 from prismonet.viz.contact_sheet import colorize_instances
-from prismonet.viz.decomposition import _panel
+from prismonet.viz.decomposition import labelled_panel
 from prismonet.viz.mask_comparison import PANEL, chw_to_u8, panel_grid
 
 
@@ -22,9 +22,9 @@ def ladder_figure(rungs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], p
         for name, rgb, gt, inst in rungs:
             n_gt = len(np.unique(gt[i])) - (0 in gt[i])
             if last is None or not np.array_equal(gt[i], last):
-                tiles.append(_panel(colorize_instances(gt[i]), f"truth ({n_gt})", PANEL))
+                tiles.append(labelled_panel(colorize_instances(gt[i]), f"truth ({n_gt})", PANEL))
                 last = gt[i]
             n = len(np.unique(inst[i])) - (0 in inst[i])
-            tiles += [_panel(chw_to_u8(rgb[i]), name, PANEL), _panel(colorize_instances(inst[i]), f"found {n}/{n_gt}", PANEL)]
+            tiles += [labelled_panel(chw_to_u8(rgb[i]), name, PANEL), labelled_panel(colorize_instances(inst[i]), f"found {n}/{n_gt}", PANEL)]
         rows.append(tiles)
     return write_image(Path(path), panel_grid(rows)[..., ::-1])

@@ -9,7 +9,7 @@ import numpy as np
 
 from prismonet.files import write_image
 from prismonet.viz.contact_sheet import colorize_instances
-from prismonet.viz.decomposition import _panel
+from prismonet.viz.decomposition import labelled_panel
 
 PANEL = (128, 128)
 
@@ -23,10 +23,10 @@ def mask_comparison_figure(rgb: np.ndarray, gt_instance: np.ndarray, columns: li
     for i in range(len(rgb)):
         image = chw_to_u8(rgb[i])
         n_gt = len(np.unique(gt_instance[i])) - (0 in gt_instance[i])
-        tiles = [_panel(image, "input", PANEL), _panel(colorize_instances(gt_instance[i]), f"truth ({n_gt})", PANEL)]
+        tiles = [labelled_panel(image, "input", PANEL), labelled_panel(colorize_instances(gt_instance[i]), f"truth ({n_gt})", PANEL)]
         for name, inst in columns:
             n = len(np.unique(inst[i])) - (0 in inst[i])
-            tiles.append(_panel(colorize_instances(inst[i]), f"{name} ({n})", PANEL))
+            tiles.append(labelled_panel(colorize_instances(inst[i]), f"{name} ({n})", PANEL))
         rows.append(tiles)
     return write_image(Path(path), panel_grid(rows)[..., ::-1])  # RGB -> OpenCV's BGR
 
@@ -37,7 +37,7 @@ def chw_to_u8(rgb: np.ndarray) -> np.ndarray:
 
 
 def panel_grid(rows: list[list[np.ndarray]], gap: int = 4) -> np.ndarray:
-    """Panels of equal size (``_panel``'s) laid out in rows, with white gaps between them; shorter rows
+    """Panels of equal size (``labelled_panel``'s) laid out in rows, with white gaps between them; shorter rows
     are filled with blank panels."""
     n = max(len(tiles) for tiles in rows)
     rows = [tiles + [np.full_like(tiles[0], 255)] * (n - len(tiles)) for tiles in rows]
