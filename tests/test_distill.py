@@ -49,6 +49,50 @@ def test_distill_loss_regresses_only_the_slots_the_fit_shows():
     assert float(distill_loss(two, bg, t, torch.ones(1), w)) == pytest.approx((0.2 + 8.5) / 2 + 0.1, rel=1e-6)
 
 
+def test_distill_loss_shape_term_only_with_shape_targets():
+    """Targets with ``z_sh`` (made by a search that tried the prior's shapes) add the squared L2 of the
+    shape latents, weighted; targets without it leave the shapes alone."""
+    p = params(0.5, [0.0, 0.0, 0.5], 0.0, [0.0, 0.0])  # z_sh all zeros, D = 8
+    t = {"scale": torch.tensor([[0.5]]), "position": torch.tensor([[[0.0, 0.0, 0.5]]]), "cos_sin": torch.tensor([[[1.0, 0.0]]]),
+         "z_tex": torch.zeros(1, 1, 2), "bg_color": torch.zeros(1, 3)}
+    bg = torch.zeros(1, 3)
+    assert float(distill_loss(p, bg, t, torch.ones(1))) == pytest.approx(0.0, abs=1e-7)
+    t[distill.SHAPE] = torch.tensor([[[0.5, -1.0, 0, 0, 0, 0, 0, 2.0]]])  # squared distance 0.25 + 1 + 4
+    assert float(distill_loss(p, bg, t, torch.ones(1), DistillWeights(shape=2.0))) == pytest.approx(2.0 * 5.25, rel=1e-6)
+
+
+def test_shape_targets_only_from_a_search_with_shape_trials(tmp_path, monkeypatch):
+    """A search that tries the prior's shapes saves each slot's fitted code (and the loader reads it);
+    one that cannot change the shapes saves none, so old recipes are not anchored to their own codes.
+    Settings added to the search after a folder's targets were made read as their defaults there."""
+    import json
+
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+
+    model, _ = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    shapes = InferenceConfig(search=SearchConfig(rounds=1, scales=(), shifts=(), yaws=(), shape_nearest=2))
+    fit_targets(model, ds, tmp_path / "s", 2, shapes, batch_size=2, progress=False)
+    t = DistillTargets(tmp_path / "s", num_slots=3)
+    assert tuple(t.t[distill.SHAPE].shape) == (2, 3, model.prior.latents.shape[1])
+    from prismonet.model.inference import infer
+
+    with torch.no_grad():
+        enc = infer(model, ds.batch([0, 1]), InferenceConfig()).latents.params.z_sh
+    z = t.t[distill.SHAPE]  # every slot's code is the encoder's or one of the prior's
+    d_prior = torch.cdist(z.reshape(-1, z.shape[-1]), model.prior.latents.float()).min(1).values
+    d_enc = (z - enc).norm(dim=-1).reshape(-1)
+    assert bool(((d_prior < 1e-6) | (d_enc < 1e-6)).all())
+    plain = InferenceConfig(search=SearchConfig(rounds=1))
+    fit_targets(model, ds, tmp_path / "p", 2, plain, batch_size=2, progress=False)
+    assert distill.SHAPE not in DistillTargets(tmp_path / "p", num_slots=3).t
+    info = json.loads((tmp_path / "p" / "targets.json").read_text())
+    del info["search"]["shape_nearest"]  # as written before the setting existed
+    (tmp_path / "p" / "targets.json").write_text(json.dumps(info))
+    fit_targets(model, ds, tmp_path / "p", 2, plain, batch_size=2, progress=False)  # resumes: no "other settings"
+
+
 def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.io import load_model

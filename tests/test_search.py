@@ -107,7 +107,7 @@ def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid
 
 @pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0),
                                  dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1), dict(grid=-1), dict(grid=1),
-                                 dict(grid=16, shape_trials=True)])
+                                 dict(grid=16, shape_trials=True), dict(grid=16, shape_nearest=3), dict(shape_nearest=-1)])
 def test_search_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="search"):
         SearchConfig(**bad)
@@ -130,6 +130,7 @@ def test_evaluation_and_cli_with_search(tmp_path, capsys):
     assert "coarse_rounds must lie in [0, rounds], got 2 of 1" in capsys.readouterr().err.strip().splitlines()[-1]
     assert "the first 1 at half size" in InferenceConfig.of(search=3, search_coarse=1).describe()
     assert "shapes tabulated at 24^3" in InferenceConfig.of(search=3, search_grid=24).describe()
+    assert "the 37 nearest prior codes tried" in InferenceConfig.of(search=3, search_shapes=37).describe()
 
 
 def test_color_only_search_ignores_depth(shipped):
@@ -184,6 +185,28 @@ def test_shape_trials_recover_the_right_category(shipped):
     z = found.latents.params.z_sh
     assert torch.allclose(z[visible], cube.expand(int(visible.sum()), -1))
     assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)
+
+
+def test_shape_nearest_tries_the_prior_codes_nearest_first(shipped):
+    """Target: every slot drawn with one training code of the prior; start: the same poses with another
+    code. Trying all the prior's codes fits the scene exactly (the target's code is among them);
+    trying only the one nearest to the start code tries the start's own code, which changes nothing."""
+    model, _, out = shipped
+    p, bg = out.latents.params, out.latents.bg_color
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    codes, cats = model.prior.latents, torch.as_tensor(model.prior.category_ids)
+    cylinder, cube = codes[cats == 1][0], codes[cats == 2][-1]
+    target = _rendered_target(model, b, _with(p, z_sh=cube.expand_as(p.z_sh).clone()), bg)
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        start = render_latents(model, _with(p, z_sh=cylinder.expand_as(p.z_sh).clone()), bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    only_shapes = dict(scales=(), shifts=(), yaws=(), rounds=1)
+    one = search_latents(model, start, b, SearchConfig(shape_nearest=1, **only_shapes))
+    assert torch.equal(one.latents.params.z_sh, start.latents.params.z_sh)
+    every = search_latents(model, start, b, SearchConfig(shape_nearest=len(codes), **only_shapes))
+    assert torch.allclose(every.composite.image, target.composite.image, atol=1e-4)
+    assert float(fit_score(every.composite.image, every.composite.depth, b.rgb, b.depth).max()) < 1e-4
+    assert not torch.allclose(start.composite.image, target.composite.image, atol=1e-2)
 
 
 def test_ab_script_refuses_an_unknown_revision_in_one_line():

@@ -1,7 +1,8 @@
 """The shipped ShapeNet-style scene models on their shipped test scenes, against thresholds set from
 their measured figures with a margin (``python3 -m prismonet evaluate cars prismonet/assets/samples/cars``:
 AP0.5 0.844, AR0.5 0.667; on the unseen cars of ``samples/cars_novel``: 0.760, 0.531; ``tableware``, the
-paper's tabletop setting: 0.729, 0.667 seen and 0.281, 0.271 novel; ``chairs``: 0.385, 0.365 seen and
+paper's tabletop setting: 0.729, 0.667 seen and 0.281, 0.271 novel; ``chairs`` (self-distilled, since
+session 40): 0.448, 0.479 seen and 0.333, 0.385 novel; ``chairs_depth01``, its start: 0.385, 0.365 seen and
 0.219, 0.219 novel)."""
 
 import pytest
@@ -14,8 +15,11 @@ from prismonet.model.io import load_model
 SHIPPED = {  # name: (samples, AP0.5 floor, AR0.5 floor)
     "cars": [("samples/cars", 0.7, 0.5), ("samples/cars_novel", 0.6, 0.4)],
     "tableware": [("samples/tableware", 0.6, 0.5), ("samples/tableware_novel", 0.15, 0.15)],
-    "chairs": [("samples/chairs", 0.3, 0.28), ("samples/chairs_novel", 0.15, 0.15)],
+    "chairs": [("samples/chairs", 0.4, 0.43), ("samples/chairs_novel", 0.28, 0.33)],
+    "chairs_depth01": [("samples/chairs", 0.3, 0.28), ("samples/chairs_novel", 0.15, 0.15)],
 }
+PRIOR = {"chairs_depth01": "chairs"}
+"""The prior of a model whose name is not its setting's."""
 
 
 @pytest.mark.parametrize("name", sorted(SHIPPED))
@@ -24,7 +28,7 @@ def test_the_model_ships_with_its_prior_config_and_log(name):
     for suffix in ("_model.safetensors", "_model.json", "_train_config.json", "_train_log.jsonl"):
         assert asset_path(name + suffix).is_file(), name + suffix
     model, info = load_model(name)
-    assert model.cfg.prior == name and model.prior.bounds is not None  # its own prior, with its render box
+    assert model.cfg.prior == PRIOR.get(name, name) and model.prior.bounds is not None  # its setting's prior, with its render box
 
 
 @pytest.mark.parametrize("name,samples,ap,ar", [(n, *s) for n in sorted(SHIPPED) for s in SHIPPED[n]])

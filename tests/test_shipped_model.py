@@ -65,8 +65,9 @@ def test_shipped_model_files_travel_with_config_and_log():
     ("clevr3_model", "clevr3_seek_config.json", "clevr3_seek_log.jsonl", "clevr3_seek.json"),  # shipped
     ("clevr3_distilled_model", "clevr3_distill_config.json", "clevr3_distill_log.jsonl", "clevr3_distill.json"),  # its start
     ("clevr3_60k_model", "clevr3_train_config.json", "clevr3_train_log.jsonl", "clevr3_shipped.json"),  # the distilled one's start
-    ("clevr1to8_model", "clevr1to8_seek_config.json", "clevr1to8_seek_log.jsonl", "clevr1to8_seek16k.json"),  # 1-8 objects
-    ("clevr1to8_30k_model", "clevr1to8_30k_train_config.json", "clevr1to8_30k_train_log.jsonl", "clevr1to8.json"),  # its start
+    ("clevr1to8_model", "clevr1to8_distill_config.json", "clevr1to8_distill_log.jsonl", "clevr1to8_seek_distill_fc.json"),  # 1-8 objects
+    ("clevr1to8_seek16k_model", "clevr1to8_seek16k_train_config.json", "clevr1to8_seek16k_train_log.jsonl", "clevr1to8_seek16k.json"),  # its start
+    ("clevr1to8_30k_model", "clevr1to8_30k_train_config.json", "clevr1to8_30k_train_log.jsonl", "clevr1to8.json"),  # the seek one's start
 ])
 def test_shipped_model_config_log_and_recipe_agree(stem, config, log, recipe):
     """The weights, their training config, the log and the documented recipe describe one run."""

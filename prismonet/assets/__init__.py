@@ -28,8 +28,10 @@ MODELS = {
     "blocktowers": "blocktowers_model",
     "cars": "cars_model",
     "chairs": "chairs_model",
+    "chairs_depth01": "chairs_depth01_model",
     "tableware": "tableware_model",
     "clevr1to8": "clevr1to8_model",
+    "clevr1to8_seek16k": "clevr1to8_seek16k_model",
     "clevr1to8_30k": "clevr1to8_30k_model",
     "tabletop": "tabletop_model",
 }
@@ -54,8 +56,10 @@ MODEL_SAMPLES = {
     "blocktowers": "samples/towers",
     "cars": "samples/cars",
     "chairs": "samples/chairs",
+    "chairs_depth01": "samples/chairs",
     "tableware": "samples/tableware",
     "clevr1to8": "samples/clevr1to8",
+    "clevr1to8_seek16k": "samples/clevr1to8",
     "clevr1to8_30k": "samples/clevr1to8",
     "tabletop": "samples/tabletop",
 }

@@ -37,6 +37,8 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
     g.add_argument("--search-grid", type=int, default=0, metavar="G",
                    help="render the search's trials from each slot's shape tabulated at G^3 points instead of the MLP "
                         "(the result is rendered with the MLP; default 0: the MLP throughout)")
+    g.add_argument("--search-shapes", type=int, default=0, metavar="N",
+                   help="in the search's first round, also try each slot's N nearest training shapes of the prior (default 0)")
     g.add_argument("--refine", type=int, default=0, metavar="K", help="refine all latents for K gradient steps against the training losses")
     g.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default 0.01)")
     g.add_argument("--refine-pose-lr-scale", type=float, help="positions and rotations step this many times faster (default 3)")
@@ -62,7 +64,8 @@ def inference_config(args, has_depth: bool = True):
                               search_scales=None if args.search_scales is None else floats(args.search_scales, None, "--search-scales"),
                               search_far_clip=getattr(args, "search_far_clip", False),
                               search_coarse=getattr(args, "search_coarse", 0),
-                              search_grid=getattr(args, "search_grid", 0))
+                              search_grid=getattr(args, "search_grid", 0),
+                              search_shapes=getattr(args, "search_shapes", 0))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

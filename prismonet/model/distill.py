@@ -5,7 +5,7 @@ pass what the test-time pose search and colour fit reach.
    RGB-D) and the colour fit (against their RGB), exactly as ``evaluate --search R --fit-color K``
    does on test scenes. Only the input RGB-D enters; no pose, mask or instance label is read.
    The fitted scale, position, yaw, texture latents and background colour of every slot are the
-   targets. Slots keep their order (slot k is encoder step k), so step k learns step k's fit.
+   targets, and its shape latent when the search tried the prior's shapes (``SearchConfig.shape_nearest``). Slots keep their order (slot k is encoder step k), so step k learns step k's fit.
 2. ``distill_loss``: a regression of the encoder's decoded slots onto those targets, added to the
    paper's losses with weight ``LossConfig.w_distill`` (``TrainConfig.distill`` names the targets).
 
@@ -28,6 +28,9 @@ FIELDS = ("scale", "position", "cos_sin", "z_tex", "bg_color")
 VISIBLE = "visible"
 """An optional field: ``(K,)`` pixels of the fitted render each slot wins (targets made before it existed
 lack it; then every slot is a target)."""
+SHAPE = "z_sh"
+"""An optional field: ``(K, D_sh)`` fitted shape latents, saved only when the fit could change them (a
+search with shape trials); without it the shapes are not distilled."""
 MIN_VISIBLE = 25
 """A slot is a target only where the fit shows at least this many of its pixels (the metrics' visibility
 rule): a hidden slot's fitted pose is arbitrary, and regressing onto it pulls the encoder off the objects."""
@@ -51,6 +54,8 @@ class DistillWeights:
     """Squared L2 of texture latents."""
     background: float = 1.0
     """L1 of the background colour (RGB summed)."""
+    shape: float = 1.0
+    """Squared L2 of shape latents (only with targets that have them, ``SHAPE``)."""
 
 
 class DistillTargets:
@@ -66,7 +71,7 @@ class DistillTargets:
         info = json.loads(info_path.read_text())
         if info.get("num_slots") != num_slots:
             raise DistillError(f"{root}: targets for {info.get('num_slots')} slots, the model has {num_slots}")
-        parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, VISIBLE)}
+        parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, VISIBLE, SHAPE)}
         for i in range(0, info["count"], info["chunk"]):
             f = root / f"chunk_{i // info['chunk']:05d}.safetensors"
             if not f.is_file():
@@ -74,12 +79,14 @@ class DistillTargets:
             tensors, _ = load_checkpoint(f)
             for k in FIELDS:
                 parts[k].append(tensors[k])
-            if VISIBLE in tensors:
-                parts[VISIBLE].append(tensors[VISIBLE])
+            for k in (VISIBLE, SHAPE):
+                if k in tensors:
+                    parts[k].append(tensors[k])
         if not parts["scale"]:
             raise DistillError(f"{root}: no finished chunk of targets yet")
-        if len(parts[VISIBLE]) != len(parts["scale"]):  # none, or older chunks without it: every slot a target
-            del parts[VISIBLE]
+        for k in (VISIBLE, SHAPE):  # none, or older chunks without it: every slot a target / shapes not distilled
+            if len(parts[k]) != len(parts["scale"]):
+                del parts[k]
         self.t = {k: torch.cat(v) for k, v in parts.items()}
         self.count = len(self.t["scale"])
 
@@ -103,6 +110,8 @@ def distill_loss(params, bg_color: torch.Tensor, targets: dict[str, torch.Tensor
         + w.rotation * (1 - (cs * ct).sum(-1))
         + w.texture * ((params.z_tex - targets["z_tex"]) ** 2).sum(-1)
     )  # (B, K)
+    if SHAPE in targets:
+        per_slot = per_slot + w.shape * ((params.z_sh - targets[SHAPE]) ** 2).sum(-1)
     if VISIBLE in targets:
         seen = (targets[VISIBLE] >= MIN_VISIBLE).to(per_slot.dtype)
         slots = (per_slot * seen).sum(1) / seen.sum(1).clamp_min(1.0)

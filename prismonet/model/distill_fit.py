@@ -54,6 +54,10 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
     info_path = out / "targets.json"
     if info_path.is_file():
         old = json.loads(info_path.read_text())
+        if isinstance(old.get("search"), dict):  # search settings added since those targets were made: at their defaults
+            from prismonet.model.search import SearchConfig
+
+            old["search"] = {**json.loads(json.dumps(asdict(SearchConfig(rounds=old["search"].get("rounds", 0))))), **old["search"]}
         if {k: v for k, v in old.items() if k != "count"} != {k: v for k, v in json.loads(json.dumps(info)).items() if k != "count"}:
             raise DistillError(f"{out}: holds targets made with other settings; use a new folder")
     tmp = info_path.with_suffix(".json.tmp")
@@ -66,7 +70,8 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         path = out / f"chunk_{c0 // distill.CHUNK:05d}.safetensors"
         if path.is_file():
             continue
-        rows: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, distill.VISIBLE)}
+        shapes = cfg.search.rounds > 0 and (cfg.search.shape_trials or cfg.search.shape_nearest > 0)
+        rows: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, distill.VISIBLE, *((distill.SHAPE,) if shapes else ()))}
         for s in range(c0, min(c0 + distill.CHUNK, count), batch_size):
             b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count))))
 
@@ -81,8 +86,9 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
             K = p.scale.shape[1]
             won = torch.stack([(o.composite.instance == k + 1).flatten(1).sum(1) for k in range(K)], 1)  # (B, K) pixels
             for k, v in (("scale", p.scale), ("position", p.position), ("cos_sin", p.cos_sin), ("z_tex", p.z_tex),
-                         ("bg_color", o.latents.bg_color), (distill.VISIBLE, won)):
-                rows[k].append(v.detach().float())
+                         ("bg_color", o.latents.bg_color), (distill.VISIBLE, won), (distill.SHAPE, p.z_sh)):
+                if k in rows:
+                    rows[k].append(v.detach().float())
         save_checkpoint(path, {k: torch.cat(v) for k, v in rows.items()}, {"first": c0})
     summary = {"scenes": count, "chunks": len(chunks)}
     if before:

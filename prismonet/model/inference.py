@@ -61,12 +61,13 @@ class InferenceConfig:
     def of(cls, extra_slots: int = 0, search: int = 0, refine: int = 0, fit_color: int = 0, use_depth: bool = True,
            refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False,
            prune: bool = False, search_scales: tuple[float, ...] | None = None,
-           search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0) -> "InferenceConfig":
+           search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0,
+           search_shapes: int = 0) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each)."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         scales = {} if search_scales is None else {"scales": tuple(search_scales)}
         search_cfg = SearchConfig(rounds=search, far_clip=search_far_clip, coarse_rounds=search_coarse, grid=search_grid,
-                                  **scales)
+                                  shape_nearest=search_shapes, **scales)
         return cls(extra_slots, search_cfg,
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
                    ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None)
@@ -87,7 +88,8 @@ class InferenceConfig:
                   " (scales " + ", ".join(f"{v:g}" for v in self.search.scales) + ")")
                   + (", depth clipped" if self.search.far_clip else "")
                   + (f", the first {self.search.coarse_rounds} at half size" if self.search.coarse_rounds else "")
-                  + (f", shapes tabulated at {self.search.grid}^3" if self.search.grid else "")) if self.search.rounds else "",
+                  + (f", shapes tabulated at {self.search.grid}^3" if self.search.grid else "")
+                  + (f", the {self.search.shape_nearest} nearest prior codes tried" if self.search.shape_nearest else "")) if self.search.rounds else "",
                  f"{self.refine.steps} refinement steps" if self.refine.steps else "",
                  f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else "",
                  "pruning the slots that explain nothing" if self.prune else ""]

@@ -46,6 +46,10 @@ class SearchConfig:
     """Also try, once per slot in the first pass, the prior's training code nearest to the slot's
     shape latent within each shape category (sphere, cylinder, cube for Clevr): the encoder's
     latents drift towards one category (cubes come out nearest a cylinder code, EVALUATION.md)."""
+    shape_nearest: int = 0
+    """Also try, once per slot in the first pass, the prior's ``N`` training codes nearest to the slot's
+    shape latent, whatever their category (0: none). For priors of many similar shapes (chairs), where
+    the encoder's code lies between several models' codes and renders none of them."""
 
     far_clip: bool = False
     """Score the render with its depth clipped at the model's ``far_depth``, like the sensor's (off by
@@ -64,8 +68,10 @@ class SearchConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.coarse_rounds <= max(self.rounds, 0):
             raise ValueError(f"search: coarse_rounds must lie in [0, rounds], got {self.coarse_rounds} of {self.rounds}")
-        if self.grid < 0 or self.grid == 1 or (self.grid and self.shape_trials):
-            raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, and not with shape_trials, got {self.grid}")
+        if self.grid < 0 or self.grid == 1 or (self.grid and (self.shape_trials or self.shape_nearest)):
+            raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, and not with shape trials, got {self.grid}")
+        if self.shape_nearest < 0:
+            raise ValueError(f"search: shape_nearest must be >= 0, got {self.shape_nearest}")
         if self.rounds < 0 or any(s <= 0 for s in self.scales) or self.w_image < 0 or self.w_depth < 0 or not 0 < self.decay <= 1:
             raise ValueError(f"search: rounds and weights must be non-negative and scales positive, got {self}")
 
@@ -164,6 +170,11 @@ class _Level:
                     sel = codes[cats == c]  # (n_c, D)
                     nearest = sel[torch.cdist(state.z_sh[:, k], sel).argmin(1)]  # (B, D)
                     self.attempt(state, k, nearest, state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
+            if cfg.shape_nearest and r == 0:
+                n = min(cfg.shape_nearest, codes.shape[0])
+                order = torch.cdist(state.z_sh[:, k], codes).topk(n, dim=1, largest=False).indices  # (B, n), nearest first
+                for i in range(n):
+                    self.attempt(state, k, codes[order[:, i]], state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
             for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, state.scale[:, k], state.position[:, k], state.cos_sin[:, k]):
                 self.attempt(state, k, state.z_sh[:, k], s_try, p_try, cs_try)
 
@@ -209,7 +220,7 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     The first ``cfg.coarse_rounds`` passes render and score at half the size (``batch.ground_z`` is
     read for the ground's depth there); the rest, and the score that decides what is kept, at full size.
     With ``cfg.grid`` the trials render from tabulated shapes and the result is rendered with the MLP."""
-    if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials):
+    if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials and not cfg.shape_nearest):
         return out
     p = out.latents.params
     target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
