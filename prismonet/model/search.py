@@ -172,7 +172,8 @@ class _Level:
                     self.attempt(state, k, nearest, state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
             if cfg.shape_nearest and r == 0:
                 n = min(cfg.shape_nearest, codes.shape[0])
-                order = torch.cdist(state.z_sh[:, k], codes).topk(n, dim=1, largest=False).indices  # (B, n), nearest first
+                dist = torch.cdist(state.z_sh[:, k], codes, compute_mode="donot_use_mm_for_euclid_dist")  # exact: a code's own is 0
+                order = dist.topk(n, dim=1, largest=False).indices  # (B, n), nearest first
                 for i in range(n):
                     self.attempt(state, k, codes[order[:, i]], state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
             for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, state.scale[:, k], state.position[:, k], state.cos_sin[:, k]):
