@@ -5,7 +5,8 @@ pass what the test-time pose search and colour fit reach.
    RGB-D) and the colour fit (against their RGB), exactly as ``evaluate --search R --fit-color K``
    does on test scenes. Only the input RGB-D enters; no pose, mask or instance label is read.
    The fitted scale, position, yaw, texture latents and background colour of every slot are the
-   targets, and its shape latent when the search tried the prior's shapes (``SearchConfig.shape_nearest``). Slots keep their order (slot k is encoder step k), so step k learns step k's fit.
+   targets, and its shape latent when the search tried the prior's shapes (``SearchConfig.shape_nearest``).
+   Slots keep their order (slot k is encoder step k), so step k learns step k's fit.
 2. ``distill_loss``: a regression of the encoder's decoded slots onto those targets, added to the
    paper's losses with weight ``LossConfig.w_distill`` (``TrainConfig.distill`` names the targets).
 

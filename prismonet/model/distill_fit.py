@@ -66,12 +66,14 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
     model.eval()
     before, after = [], []
     chunks = range(0, count, distill.CHUNK)
+    # shape codes are targets only when the search could change them (else they would anchor the encoder to its own)
+    shapes = cfg.search.rounds > 0 and (cfg.search.shape_trials or cfg.search.shape_nearest > 0)
+    fields = (*FIELDS, distill.VISIBLE, *((distill.SHAPE,) if shapes else ()))
     for c0 in tqdm(chunks, desc="distillation targets", unit="chunk", disable=not progress):
         path = out / f"chunk_{c0 // distill.CHUNK:05d}.safetensors"
         if path.is_file():
             continue
-        shapes = cfg.search.rounds > 0 and (cfg.search.shape_trials or cfg.search.shape_nearest > 0)
-        rows: dict[str, list[torch.Tensor]] = {k: [] for k in (*FIELDS, distill.VISIBLE, *((distill.SHAPE,) if shapes else ()))}
+        rows: dict[str, list[torch.Tensor]] = {k: [] for k in fields}
         for s in range(c0, min(c0 + distill.CHUNK, count), batch_size):
             b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count))))
 
