@@ -161,6 +161,7 @@ class _Level:
         """One pass over all slots: shape trials (first pass, if asked), scales, shifts, yaws."""
         cfg, p = self.cfg, state.start
         codes = self.model.prior.latents.to(p.z_sh.dtype)
+        exact = "donot_use_mm_for_euclid_dist"  # cdist's matmul path leaves a code ~1e-4 from itself
         cats = torch.as_tensor(self.model.prior.category_ids)
         for k in range(state.scale.shape[1]):
             if p.active is not None and not p.active[:, k].any():
@@ -168,11 +169,11 @@ class _Level:
             if cfg.shape_trials and r == 0:
                 for c in torch.unique(cats):
                     sel = codes[cats == c]  # (n_c, D)
-                    nearest = sel[torch.cdist(state.z_sh[:, k], sel).argmin(1)]  # (B, D)
+                    nearest = sel[torch.cdist(state.z_sh[:, k], sel, compute_mode=exact).argmin(1)]  # (B, D)
                     self.attempt(state, k, nearest, state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
             if cfg.shape_nearest and r == 0:
                 n = min(cfg.shape_nearest, codes.shape[0])
-                dist = torch.cdist(state.z_sh[:, k], codes, compute_mode="donot_use_mm_for_euclid_dist")  # exact: a code's own is 0
+                dist = torch.cdist(state.z_sh[:, k], codes, compute_mode=exact)
                 order = dist.topk(n, dim=1, largest=False).indices  # (B, n), nearest first
                 for i in range(n):
                     self.attempt(state, k, codes[order[:, i]], state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
