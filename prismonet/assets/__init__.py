@@ -7,8 +7,12 @@ from importlib import resources
 from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-24: the
-self-distilled model below plus 16K steps with the far clip and the seek term, ``configs/clevr3_seek.json``)."""
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-25: the
+far-clip + seek model below plus 4K steps of far clip + seek + self-distillation from its own far-clipped search
+targets, ``configs/clevr3_seek_distill_fc.json``)."""
+SEEK_MODEL = "clevr3_seek_model"
+"""The far-clip + seek model (shipped 2026-11-24 to 11-25; the self-distilled model below plus 16K steps of
+``configs/clevr3_seek.json``): what ``configs/clevr3_seek_distill_fc.json`` starts from."""
 DISTILLED_MODEL = "clevr3_distilled_model"
 """The self-distilled model (shipped 2026-11-23 to 11-24; the 60K-step model plus 4K steps of
 ``configs/clevr3_distill.json``): what ``configs/clevr3_seek.json`` starts from."""
@@ -21,6 +25,7 @@ SHIPPED_SAMPLES = "samples/clevr3"
 MODELS = {
     "clevr3": SHIPPED_MODEL,
     "clevr3_60k": PREVIOUS_MODEL,
+    "clevr3_seek": SEEK_MODEL,
     "clevr3_distilled": DISTILLED_MODEL,
     "clevr2": "clevr2_model",
     "clevr4": "clevr4_model",
