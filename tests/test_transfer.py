@@ -1,9 +1,10 @@
-"""Starting a model from one with other latent sizes or outputs (``init_transfer``)."""
+"""Starting a model from one with other latent sizes or outputs (``init_transfer``), or from a narrower one
+(``init_widen``)."""
 
 import torch
 
 from prismonet.model.config import ModelConfig
-from prismonet.model.io import HEAD, transfer_weights
+from prismonet.model.io import HEAD, CheckpointError, transfer_weights, widen_weights
 from prismonet.model.prismonet import PriSMONet
 from prismonet.shapes.decoder import SDFDecoder, SDFDecoderConfig
 from prismonet.shapes.prior import ShapePrior
@@ -65,7 +66,44 @@ def test_bad_transfer_and_inside_test_settings_say_what_is_wrong():
     from prismonet.model.trainer import TrainConfig
     from prismonet.shapes.sdf_samples import SamplingConfig
 
-    with pytest.raises(ValueError, match="init_transfer needs init_from"):
+    with pytest.raises(ValueError, match="init_transfer and init_widen need init_from"):
         TrainConfig(init_transfer=True)
+    with pytest.raises(ValueError, match="init_transfer and init_widen need init_from"):
+        TrainConfig(init_widen=True)
+    with pytest.raises(ValueError, match="exclude each other"):
+        TrainConfig(init_from="shipped", init_transfer=True, init_widen=True)
     with pytest.raises(ValueError, match="sampling.inside: expected one of"):
         SamplingConfig(inside="parity")
+
+
+def test_a_widened_model_starts_as_the_same_function_and_its_new_units_train():
+    """Wider encoders (every conv block, the fully connected layers, the background encoder) from a narrower
+    model: the same encoder outputs in float64 (to rounding: the new units add zeros, in another summation order),
+and every new unit gets a
+    gradient within two steps."""
+    import pytest
+
+    prior = _prior(8)
+    torch.manual_seed(0)
+    src = PriSMONet(ModelConfig(channels=(8, 8, 16, 16), fc=(32, 32), bg_channels=(4, 4, 8, 8)), prior=prior).double()
+    torch.manual_seed(1)
+    wide = PriSMONet(ModelConfig(channels=(12, 8, 24, 32), fc=(48, 32), bg_channels=(8, 4, 8, 8)), prior=prior).double()
+    grown = widen_weights(wide, src)
+    assert "encoder.trunk.0.weight" in grown and "encoder.head.0.weight" in grown and "texture.layers.1.weight" not in grown
+    x = torch.rand(2, 7, 64, 64, dtype=torch.float64)
+    assert torch.allclose(wide.encoder(x), src.encoder(x), rtol=0, atol=1e-14)
+    assert torch.allclose(wide.bg_encoder(x[:, :3]), src.bg_encoder(x[:, :3]), rtol=0, atol=1e-14)
+    # the zero columns and then the new rows receive gradients: nothing stays frozen at its start
+    opt = torch.optim.SGD(wide.encoder.parameters(), lr=0.1)
+    for _ in range(2):
+        opt.zero_grad()
+        wide.encoder(x).pow(2).sum().backward()
+        opt.step()
+    w = wide.encoder.trunk[0].weight
+    assert w.grad[8:].abs().sum() > 0  # new output channels of the first block
+    assert wide.encoder.trunk[3].weight.grad[:, 8:].abs().sum() > 0  # the next block's columns that read them
+    # a narrower target, or one with other tensors, is refused with the name of the tensor
+    with pytest.raises(CheckpointError, match="smaller than the source"):
+        widen_weights(src, wide)
+    with pytest.raises(CheckpointError, match="differ in more than widths"):
+        widen_weights(PriSMONet(ModelConfig(channels=(8, 8, 16), fc=(32, 32), bg_channels=(4, 4, 8, 8)), prior=prior), src)

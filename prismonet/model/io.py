@@ -164,6 +164,39 @@ def transfer_weights(model, source) -> list[str]:
     return fresh
 
 
+def widen_weights(model, source) -> list[str]:
+    """Start ``model``, a wider copy of ``source``'s architecture, as the same function (``init_widen``; Net2Net's
+    zero-padding, Chen et al. 2016).
+
+    Every tensor of ``source`` goes into the leading block of the tensor of the same name, which must be at least
+    as large in every dimension. In a weight, the columns of the new inputs (new channels of the layer before,
+    or of the flattened feature map, which the encoder flattens channel-major so that the new channels come last)
+    are zero, so the old units compute what they did; the rows of the new units keep their fresh initialisation,
+    so they train from the first step (the next layer's zero columns get gradients at once). Returns the names
+    of the tensors that grew. ``CheckpointError`` when a tensor is missing or smaller than the source's.
+    """
+    dst, src = model.state_dict(), source.state_dict()
+    missing = sorted(set(dst) ^ set(src))
+    if missing:
+        raise CheckpointError(f"init_widen: the two models differ in more than widths (tensors {missing[:3]})")
+    grown = []
+    with torch.no_grad():
+        for name, t in dst.items():
+            s = src[name]
+            if t.dim() != s.dim() or any(a < b for a, b in zip(t.shape, s.shape)):
+                raise CheckpointError(f"init_widen: {name} has shape {tuple(t.shape)}, smaller than the source's {tuple(s.shape)}")
+            if t.shape == s.shape:
+                t.copy_(s)
+                continue
+            grown.append(name)
+            lead = tuple(slice(0, n) for n in s.shape)
+            if t.dim() >= 2:  # old outputs read nothing from the new inputs
+                t[: s.shape[0], s.shape[1]:] = 0
+            t[lead] = s
+    model.load_state_dict(dst)
+    return grown
+
+
 def training_camera(model, info: dict):
     """``(Camera, ground_z)`` the model was trained with: from the checkpoint's record, or for a
     checkpoint without one, the default CLEVR camera at the model's image size."""

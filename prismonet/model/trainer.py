@@ -63,6 +63,10 @@ class TrainConfig:
     """With ``init_from``: start from a model with other latent sizes, prior or outputs (e.g. the Clevr model
     for a ShapeNet-style setting, or for the full-rotation variant): what fits is copied, the latent outputs
     start fresh (``prismonet.model.io.transfer_weights``)."""
+    init_widen: bool = False
+    """With ``init_from``: the model is a wider copy of that one (more encoder channels or fully connected
+    units, ``model.channels`` / ``model.fc`` / ``model.bg_channels``) and starts as the same function
+    (``prismonet.model.io.widen_weights``)."""
     distill: str | None = None
     """Folder of self-distillation targets (``prismonet distill``, ``prismonet.model.distill``) for
     the first scenes of the split; used with ``loss.w_distill > 0``."""
@@ -94,8 +98,10 @@ class TrainConfig:
         for name in ("log_every", "image_every", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.init_transfer and self.init_from is None:
-            raise ValueError("init_transfer needs init_from (the trained model to start from)")
+        if (self.init_transfer or self.init_widen) and self.init_from is None:
+            raise ValueError("init_transfer and init_widen need init_from (the trained model to start from)")
+        if self.init_transfer and self.init_widen:
+            raise ValueError("init_transfer and init_widen exclude each other")
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
         if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
@@ -274,11 +280,15 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     ckpt = run / "checkpoint.safetensors"
     init_weights = None  # the starting weights' fingerprint: names like "shipped" move when a new model ships
     if cfg.init_from is not None and not ckpt.is_file():
-        from prismonet.model.io import load_fitting, load_model, transfer_weights, weights_fingerprint
+        from prismonet.model.io import load_fitting, load_model, transfer_weights, weights_fingerprint, widen_weights
 
         source = load_model(cfg.init_from)[0]
         init_weights = weights_fingerprint(source)
-        if cfg.init_transfer:
+        if cfg.init_widen:
+            grown = widen_weights(model, source)
+            if rank == 0:
+                print(f"init_from {cfg.init_from}: widened {len(grown)} tensors, the same function at the start")
+        elif cfg.init_transfer:
             fresh = transfer_weights(model, source)
             if rank == 0 and fresh:
                 print(f"init_from {cfg.init_from}: fresh where it does not fit: {', '.join(fresh)}")
