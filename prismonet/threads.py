@@ -8,8 +8,11 @@ BENCHMARKS.md, "Threads on a shared machine", has the table.
 
 ``ThreadGovernor`` therefore measures instead of guessing: every ``period`` steps it times
 ``probe`` real steps at each candidate thread count and keeps the fastest until the next probe, or
-probes again at once when a step takes far longer than the last probe said it would. Nothing is run
-twice: the probe steps are ordinary steps. The thread count changes float rounding (1 and 2 threads
+probes again at once when ``slow_steps`` steps in a row take far longer than the last probe said they
+would. A probe that confirms the choice before it doubles the wait before the next (up to
+``max_period``), since under a lasting load every probe pays for its steps at the slow count; a
+changed choice or a load change brings the wait back to ``period``. Nothing is run twice: the probe
+steps are ordinary steps. The thread count changes float rounding (1 and 2 threads
 give gradients ~1e-7 apart), so a run that uses it is not bit-reproducible; fixed counts are.
 """
 
@@ -26,25 +29,34 @@ class ThreadGovernor:
 
     Args:
         candidates: thread counts to try, e.g. ``(1, 2)``.
-        period: steps between two probes.
+        period: steps between two probes, at first and after a change.
         probe: steps timed per candidate in a probe (the median is compared).
-        slow_factor: a step this many times slower than the chosen count's probe median starts a
-            new probe early (the machine's load changed).
+        slow_factor: ``slow_steps`` steps in a row this many times slower than the chosen count's probe
+            median start a new probe early (the machine's load changed).
+        max_period: the longest wait between probes, reached by doubling ``period`` after each probe
+            that keeps the choice (``period``: no backoff).
+        slow_steps: consecutive slow steps that start an early probe (1: any single one, which a
+            scheduler hiccup under load also gives).
         set_threads: applies a count (``torch.set_num_threads`` by default; a test passes a fake).
     """
 
     def __init__(self, candidates: tuple[int, ...], period: int = 200, probe: int = 3, slow_factor: float = 2.0,
-                 set_threads: Callable[[int], None] | None = None) -> None:
+                 set_threads: Callable[[int], None] | None = None, max_period: int = 1600, slow_steps: int = 2) -> None:
         if not candidates or any(c <= 0 for c in candidates):
             raise ValueError(f"candidates must be positive thread counts, got {candidates}")
         if period <= 0 or probe <= 0 or slow_factor <= 1:
             raise ValueError(f"period and probe must be positive and slow_factor > 1, got {period}, {probe}, {slow_factor}")
+        if max_period < period or slow_steps <= 0:
+            raise ValueError(f"max_period must be at least period and slow_steps positive, got {max_period} and {slow_steps}")
         if set_threads is None:
             import torch
 
             set_threads = torch.set_num_threads
         self.candidates = tuple(dict.fromkeys(candidates))
         self.period, self.probe, self.slow_factor = period, probe, slow_factor
+        self.max_period, self.slow_steps = max_period, slow_steps
+        self._wait = period  # steps until the next probe: doubles while probes keep the choice
+        self._slow = 0  # slow steps in a row
         self._set = set_threads
         self._times: dict[int, list[float]] = {}
         self._queue: list[int] = []  # the probe's remaining steps, one thread count each
@@ -55,6 +67,7 @@ class ThreadGovernor:
         self.history: list[tuple[int, dict[int, float]]] = []
         """``(step index, {threads: median seconds})`` of every finished probe."""
         self._steps = 0
+        self._early = False  # the running probe was started by slow steps, not by the wait
         self._start_probe()
 
     def _start_probe(self) -> None:
@@ -76,11 +89,17 @@ class ThreadGovernor:
             self._times[self._queue.pop(0)].append(seconds)
             if not self._queue:
                 medians = {c: statistics.median(t) for c, t in self._times.items()}
-                self.choice = min(medians, key=medians.get)
+                choice = min(medians, key=medians.get)
+                kept = bool(self.history) and choice == self.choice and not self._early
+                self._wait = min(2 * self._wait, self.max_period) if kept else self.period
+                self.choice = choice
                 self._expected = medians[self.choice]
                 self.history.append((self._steps, medians))
                 self._since_probe = 0
+                self._slow = 0
             return
         self._since_probe += 1
-        if self._since_probe >= self.period or seconds > self.slow_factor * self._expected:
+        self._slow = self._slow + 1 if seconds > self.slow_factor * self._expected else 0
+        self._early = self._slow >= self.slow_steps
+        if self._since_probe >= self._wait or self._early:
             self._start_probe()

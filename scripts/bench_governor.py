@@ -1,0 +1,107 @@
+"""The thread governor's rules against fixed thread counts, on real training steps, quiet or loaded.
+
+    python3 scripts/bench_governor.py [--data data/clevr3] [--rounds 4] [--block 50] [--load]
+
+Each variant runs ``--block`` ordinary training steps of the shipped recipe in turn (the steps of
+``scripts/bench_step.py``), ``--rounds`` times, so that the host's load drifts over all alike; a
+governor keeps its state from one block to its next. ``--load`` starts one pure-Python busy loop (a
+second process on one of the two cores) for the whole run. The table gives each variant's mean time per
+step over all its steps, the governor's probes included, and how many probes it ran. Variants: ``1`` and
+``2`` threads fixed; ``eager``: the governor before session 42 (a probe every 200 steps, and at once after
+one slow step); ``backoff``: the default now (the wait doubles to 1,600 steps while probes keep the
+choice; two slow steps in a row start an early probe).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from bench_step import configure  # noqa: E402  (the same step, the code as it is: variant "blur")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default="data/clevr3")
+    ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--load", action="store_true")
+    ap.add_argument("--variants", default="1,2,eager,backoff")
+    args = ap.parse_args()
+    if args.rounds <= 0 or args.block <= 0:
+        print("bench_governor: error: --rounds and --block must be positive", file=sys.stderr)
+        return 2
+
+    from prismonet.config import load_config
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.losses import compute_losses
+    from prismonet.model.trainer import TrainConfig, make_inputs
+    from prismonet.threads import ThreadGovernor
+
+    configure("blur")
+    cfg = load_config(TrainConfig, "configs/clevr3_shipped.json", [f"data={args.data}"])
+    model = load_model("shipped")[0]
+    model.train()
+    ds = SceneDataset(cfg.data, "train")
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=1e-7)
+
+    def step(s: int) -> float:
+        g = torch.Generator().manual_seed(s)
+        b = ds.batch(torch.randint(len(ds), (cfg.batch_size,), generator=g).tolist())
+        t0 = time.perf_counter()
+        image, depth = make_inputs(b, cfg, g)
+        out = model(image, b.K, b.T_world_cam, b.ground_z)
+        terms = compute_losses(model, out, b, cfg.loss, cfg.steps, depth)
+        opt.zero_grad(set_to_none=True)
+        terms.total.backward()
+        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+        opt.step()
+        return time.perf_counter() - t0
+
+    names = args.variants.split(",")
+    govs = {"eager": ThreadGovernor((1, 2), max_period=200, slow_steps=1), "backoff": ThreadGovernor((1, 2))}
+    bad = [n for n in names if n not in ("1", "2", *govs)]
+    if bad:
+        print(f"bench_governor: error: unknown variants {bad}", file=sys.stderr)
+        return 2
+    load = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.load else None
+    times: dict[str, list[float]] = {n: [] for n in names}
+    try:
+        step(0)  # warm up
+        for r in range(args.rounds):
+            for n in names:
+                gov = govs.get(n)
+                if gov is None:
+                    torch.set_num_threads(int(n))
+                else:
+                    gov._current = None  # another variant changed the count: set it again
+                for i in range(args.block):
+                    if gov is not None:
+                        gov.before_step()
+                    t = step(1 + 1000 * r + i)
+                    if gov is not None:
+                        gov.after_step(t)
+                    times[n].append(t)
+    finally:
+        if load is not None:
+            load.kill()
+    state = "loaded (one busy process)" if args.load else "quiet"
+    print(f"training step, batch {cfg.batch_size}, {state}, {args.rounds} x {args.block} steps per variant")
+    print("| variant | mean ms per step | median | probes |")
+    print("|---|---|---|---|")
+    for n in names:
+        probes = len(govs[n].history) if n in govs else ""
+        print(f"| {n} | {1e3 * statistics.mean(times[n]):.1f} | {1e3 * statistics.median(times[n]):.1f} | {probes} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
