@@ -139,12 +139,19 @@ def test_training_uses_the_targets(tmp_path, monkeypatch):
     model, _ = load_model("shipped")
     ds = SceneDataset(shipped_samples(), split="test")
     fit_targets(model, ds, tmp_path / "t", len(ds), InferenceConfig.of(search=1, fit_color=2), progress=False)
+    weights = []  # the texture term's weight reaches the loss from the config (0 here)
+    original = distill.distill_loss
+    monkeypatch.setattr(distill, "distill_loss", lambda *a: weights.append(a[4].texture) or original(*a))
     cfg = TrainConfig(data=str(shipped_samples()), split="test", steps=2, log_every=1, init_from="shipped",
-                      model=ModelConfig(soft_mask_tau=0.05), loss=LossConfig(w_mask=0.1, mask_from_depth=True, w_distill=0.5),
+                      model=ModelConfig(soft_mask_tau=0.05),
+                      loss=LossConfig(w_mask=0.1, mask_from_depth=True, w_distill=0.5, distill_texture=0.0),
                       distill=str(tmp_path / "t"))
     train(cfg, tmp_path / "run", progress=False)
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert all(r["distill"] > 0 for r in rows)
+    assert weights == [0.0, 0.0]
+    with pytest.raises(ValueError, match="distill_texture must be non-negative"):
+        LossConfig(distill_texture=-0.1)
 
 
 def test_batch_rows_follow_the_indices_asked_for():

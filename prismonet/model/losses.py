@@ -74,12 +74,15 @@ class LossConfig:
     w_distill: float = 0.0
     """Self-distillation (beyond the paper): weight of the regression onto the test-time fit's
     slots (``prismonet.model.distill``; needs ``TrainConfig.distill``)."""
+    distill_texture: float = 0.1
+    """Inside L_distill, the weight of the texture latents' squared L2 (``DistillWeights.texture``); 0 leaves
+    the colours to L_I alone (the colour fit moves the latents in directions that change no colour)."""
     w_seek: float = 0.0
     """Seeking the unexplained (beyond the paper; ``prismonet.model.seek``): weight of the pull of slots that
     explain nothing towards the largest foreground region (from the depth image) that no slot covers."""
 
     def __post_init__(self) -> None:
-        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence", "w_distill", "w_seek"):
+        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence", "w_distill", "w_seek", "distill_texture"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.sh_steps <= 0 or self.blur_steps <= 0:
@@ -231,9 +234,9 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count).mean() if cfg.w_pose > 0 else zero
     mask = mask_loss(out, batch, cfg, step, target_depth, far) if cfg.w_mask > 0 else zero
     if cfg.w_distill > 0 and distill is not None:
-        from prismonet.model.distill import distill_loss
+        from prismonet.model.distill import DistillWeights, distill_loss
 
-        dist = distill_loss(p, out.latents.bg_color, *distill)
+        dist = distill_loss(p, out.latents.bg_color, *distill, DistillWeights(texture=cfg.distill_texture))
     else:
         dist = zero
     presence = out.presence.sum(1).mean() if out.presence is not None else zero
