@@ -18,12 +18,11 @@ import argparse
 import statistics
 import subprocess
 import sys
-import time
 
 import torch
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from bench_step import configure  # noqa: E402  (the same step, the code as it is: variant "blur")
+from bench_step import ShippedStep, configure  # noqa: E402  (the same step; the code as it is: variant "blur")
 
 
 def main() -> int:
@@ -38,33 +37,10 @@ def main() -> int:
         print("bench_governor: error: --rounds and --block must be positive", file=sys.stderr)
         return 2
 
-    from prismonet.config import load_config
-    from prismonet.data.dataset import SceneDataset
-    from prismonet.model.io import load_model
-    from prismonet.model.losses import compute_losses
-    from prismonet.model.trainer import TrainConfig, make_inputs
     from prismonet.threads import ThreadGovernor
 
     configure("blur")
-    cfg = load_config(TrainConfig, "configs/clevr3_shipped.json", [f"data={args.data}"])
-    model = load_model("shipped")[0]
-    model.train()
-    ds = SceneDataset(cfg.data, "train")
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.Adam(params, lr=1e-7)
-
-    def step(s: int) -> float:
-        g = torch.Generator().manual_seed(s)
-        b = ds.batch(torch.randint(len(ds), (cfg.batch_size,), generator=g).tolist())
-        t0 = time.perf_counter()
-        image, depth = make_inputs(b, cfg, g)
-        out = model(image, b.K, b.T_world_cam, b.ground_z)
-        terms = compute_losses(model, out, b, cfg.loss, cfg.steps, depth)
-        opt.zero_grad(set_to_none=True)
-        terms.total.backward()
-        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-        opt.step()
-        return time.perf_counter() - t0
+    step = ShippedStep(args.data)
 
     names = args.variants.split(",")
     govs = {"eager": ThreadGovernor((1, 2), max_period=200, slow_steps=1), "backoff": ThreadGovernor((1, 2))}
@@ -94,7 +70,7 @@ def main() -> int:
         if load is not None:
             load.kill()
     state = "loaded (one busy process)" if args.load else "quiet"
-    print(f"training step, batch {cfg.batch_size}, {state}, {args.rounds} x {args.block} steps per variant")
+    print(f"training step, batch {step.cfg.batch_size}, {state}, {args.rounds} x {args.block} steps per variant")
     print("| variant | mean ms per step | median | probes |")
     print("|---|---|---|---|")
     for n in names:

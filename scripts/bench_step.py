@@ -36,6 +36,47 @@ def _argmin_zbuffer(obj_depth, obj_mask, upto=None):
     return d.argmin(dim=1), m.any(dim=1)
 
 
+class ShippedStep:
+    """One training step as the trainer takes it (noisy inputs, forward, every loss of
+    ``configs/clevr3_shipped.json`` at its final schedule, backward, clipping, Adam), batch 8 of the training
+    split, from the shipped weights; ``step(seed)`` returns its seconds, ``reset()`` restores the weights."""
+
+    def __init__(self, data: str) -> None:
+        from prismonet.config import load_config
+        from prismonet.data.dataset import SceneDataset
+        from prismonet.model.io import load_model
+        from prismonet.model.trainer import TrainConfig
+
+        self.cfg = load_config(TrainConfig, "configs/clevr3_shipped.json", [f"data={data}"])
+        self.model = load_model("shipped")[0]
+        self.model.train()
+        self.ds = SceneDataset(self.cfg.data, "train")
+        self.params = [p for p in self.model.parameters() if p.requires_grad]
+        self.state = {k: v.clone() for k, v in self.model.state_dict().items()}
+        self.reset()
+
+    def reset(self) -> None:
+        self.model.load_state_dict(self.state)
+        self.opt = torch.optim.Adam(self.params, lr=1e-6)
+
+    def __call__(self, seed: int) -> float:
+        from prismonet.model.losses import compute_losses
+        from prismonet.model.trainer import make_inputs
+
+        cfg, model = self.cfg, self.model
+        g = torch.Generator().manual_seed(seed)
+        b = self.ds.batch(torch.randint(len(self.ds), (cfg.batch_size,), generator=g).tolist())
+        t0 = time.perf_counter()
+        image, depth = make_inputs(b, cfg, g)
+        out = model(image, b.K, b.T_world_cam, b.ground_z)
+        terms = compute_losses(model, out, b, cfg.loss, cfg.steps, depth)
+        self.opt.zero_grad(set_to_none=True)
+        terms.total.backward()
+        torch.nn.utils.clip_grad_norm_(self.params, cfg.grad_clip)
+        self.opt.step()
+        return time.perf_counter() - t0
+
+
 VARIANTS = ("previous", "zbuffer", "inplace", "blur")
 _ORIGINAL: dict = {}
 
@@ -71,45 +112,20 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_step: error: variants must be among {VARIANTS} and counts positive, got {args.variants!r}", file=sys.stderr)
         return 2
 
-    from prismonet.config import load_config
-    from prismonet.data.dataset import SceneDataset
-    from prismonet.model.io import load_model
-    from prismonet.model.losses import compute_losses
-    from prismonet.model.trainer import TrainConfig, make_inputs
-
     torch.set_num_threads(args.threads)
-    cfg = load_config(TrainConfig, "configs/clevr3_shipped.json", [f"data={args.data}"])
-    model = load_model("shipped")[0]
-    model.train()
-    ds = SceneDataset(cfg.data, "train")
-    params = [p for p in model.parameters() if p.requires_grad]
-    state = {k: v.clone() for k, v in model.state_dict().items()}
-
-    def step(s: int) -> float:
-        g = torch.Generator().manual_seed(s)
-        b = ds.batch(torch.randint(len(ds), (cfg.batch_size,), generator=g).tolist())
-        t0 = time.perf_counter()
-        image, depth = make_inputs(b, cfg, g)
-        out = model(image, b.K, b.T_world_cam, b.ground_z)
-        terms = compute_losses(model, out, b, cfg.loss, cfg.steps, depth)
-        opt.zero_grad(set_to_none=True)
-        terms.total.backward()
-        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-        opt.step()
-        return time.perf_counter() - t0
+    step = ShippedStep(args.data)
 
     times: dict[str, list[float]] = {n: [] for n in names}
     for r in range(args.rounds + 1):  # round 0 warms up
         for n in names:
             configure(n)
-            model.load_state_dict(state)
-            opt = torch.optim.Adam(params, lr=1e-6)
+            step.reset()
             for i in range(args.steps):
                 t = step(1000 * r + i)
                 if r > 0:
                     times[n].append(t)
     base = statistics.median(times[names[0]])
-    print(f"training step, batch {cfg.batch_size}, {args.threads} thread(s), {args.rounds} x {args.steps} steps per variant")
+    print(f"training step, batch {step.cfg.batch_size}, {args.threads} thread(s), {args.rounds} x {args.steps} steps per variant")
     print("| variant | median ms | min | max | speed-up vs " + names[0] + " |")
     print("|---|---|---|---|---|")
     for n in names:
