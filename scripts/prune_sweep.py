@@ -31,7 +31,10 @@ def main() -> None:
     ap.add_argument("--split", default="val")
     ap.add_argument("--limit", type=int, default=96)
     ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--extra-slots", type=int, default=0)
     ap.add_argument("--search", type=int, default=0)
+    ap.add_argument("--search-coarse", type=int, default=0)
+    ap.add_argument("--search-grid", type=int, default=0)
     ap.add_argument("--fit-color", type=int, default=0)
     ap.add_argument("--color-only", action="store_true", help="the decoding and the rule read colour alone")
     ap.add_argument("--out", required=True)
@@ -39,7 +42,8 @@ def main() -> None:
     model, _ = load_model(args.model)
     ds = SceneDataset(args.data, split=args.split)
     n = min(args.limit, len(ds))
-    cfg = InferenceConfig.of(search=args.search, fit_color=args.fit_color, use_depth=not args.color_only)
+    cfg = InferenceConfig.of(extra_slots=args.extra_slots, search=args.search, search_coarse=args.search_coarse,
+                             search_grid=args.search_grid, fit_color=args.fit_color, use_depth=not args.color_only)
     grid = [StopRule(color_tol=c, depth_tol=d, min_gain=g)
             for c, d, g in itertools.product((0.1, 0.25), (0.05, 0.1, 0.25, 0.5), (1, 5, 10, 25))]
     full_inst, gt_inst = [], []
