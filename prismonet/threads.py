@@ -55,7 +55,9 @@ class ThreadGovernor:
         self.candidates = tuple(dict.fromkeys(candidates))
         self.period, self.probe, self.slow_factor = period, probe, slow_factor
         self.max_period, self.slow_steps = max_period, slow_steps
-        self._wait = period  # steps until the next probe: doubles while probes keep the choice
+        # steps from one probe to the next, doubling while probes keep the choice; 0 before the first probe
+        # and during an early one, so that the wait after it is `period`
+        self._wait = 0
         self._slow = 0  # slow steps in a row
         self._set = set_threads
         self._times: dict[int, list[float]] = {}
@@ -67,7 +69,6 @@ class ThreadGovernor:
         self.history: list[tuple[int, dict[int, float]]] = []
         """``(step index, {threads: median seconds})`` of every finished probe."""
         self._steps = 0
-        self._early = False  # the running probe was started by slow steps, not by the wait
         self._start_probe()
 
     def _start_probe(self) -> None:
@@ -90,7 +91,7 @@ class ThreadGovernor:
             if not self._queue:
                 medians = {c: statistics.median(t) for c, t in self._times.items()}
                 choice = min(medians, key=medians.get)
-                kept = bool(self.history) and choice == self.choice and not self._early
+                kept = self._wait > 0 and choice == self.choice
                 self._wait = min(2 * self._wait, self.max_period) if kept else self.period
                 self.choice = choice
                 self._expected = medians[self.choice]
@@ -100,6 +101,8 @@ class ThreadGovernor:
             return
         self._since_probe += 1
         self._slow = self._slow + 1 if seconds > self.slow_factor * self._expected else 0
-        self._early = self._slow >= self.slow_steps
-        if self._since_probe >= self._wait or self._early:
+        if self._slow >= self.slow_steps:  # the load changed: probe now, and wait `period` after it
+            self._wait = 0
+            self._start_probe()
+        elif self._since_probe >= self._wait:
             self._start_probe()

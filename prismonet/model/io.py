@@ -176,9 +176,9 @@ def widen_weights(model, source) -> list[str]:
     of the tensors that grew. ``CheckpointError`` when a tensor is missing or smaller than the source's.
     """
     dst, src = model.state_dict(), source.state_dict()
-    missing = sorted(set(dst) ^ set(src))
-    if missing:
-        raise CheckpointError(f"init_widen: the two models differ in more than widths (tensors {missing[:3]})")
+    unmatched = sorted(set(dst) ^ set(src))
+    if unmatched:
+        raise CheckpointError(f"init_widen: the two models differ in more than widths (tensors {unmatched[:3]})")
     grown = []
     with torch.no_grad():
         for name, t in dst.items():
