@@ -27,6 +27,12 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def refined_note(model) -> str:
+    """What the model's own learnt refinement passes add to a description of the test-time steps."""
+    n = model.cfg.refine_passes
+    return f" (the encoder's slots corrected by the model's {n} learnt refinement pass{'es' if n > 1 else ''})" if n else ""
+
+
 def cmd_evaluate(args) -> int:
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_counts, format_steps, format_table
@@ -42,7 +48,7 @@ def cmd_evaluate(args) -> int:
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
-          f"{cfg.describe()}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+          f"{cfg.describe()}{refined_note(model)}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
     print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")

@@ -1,5 +1,6 @@
-"""``prismonet train`` (the scene model from RGB-D) and ``prismonet distill`` (self-distillation
-targets: the test-time steps run on training scenes, ``prismonet.model.distill``)."""
+"""``prismonet train`` (the scene model from RGB-D), ``prismonet distill`` (self-distillation
+targets: the test-time steps run on training scenes, ``prismonet.model.distill``) and ``prismonet
+refiner`` (a learnt refinement pass trained on such targets, ``prismonet.model.refiner_fit``)."""
 
 from __future__ import annotations
 
@@ -43,6 +44,31 @@ def cmd_distill(args) -> int:
     return 0
 
 
+def cmd_refiner(args) -> int:
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
+                           texture=args.texture)  # validate first
+    base, info = load_model(args.checkpoint)
+    if base.cfg.refine_passes:
+        raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
+    ds = SceneDataset(args.data, split=args.split)
+    check_compatible(base, info, ds)
+    meta = json.loads((Path(args.targets) / "targets.json").read_text()) if (Path(args.targets) / "targets.json").is_file() else {}
+    from prismonet.model.distill_fit import weights_digest
+
+    if meta and meta.get("model_digest") != weights_digest(base):
+        raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {args.checkpoint}'s")
+    model = with_refiner(base)
+    s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
+    print(json.dumps(s))
+    print(f"run folder: {args.out}  (model.safetensors + model.json with the refiner, checkpoint.safetensors, log.jsonl)")
+    return 0
+
+
 def add_parsers(sub) -> None:
     tr = sub.add_parser("train", help="train the scene model from RGB-D (resumable; works under torchrun)")
     tr.add_argument("config", help="JSON file of TrainConfig fields (e.g. configs/clevr3.json)")
@@ -61,3 +87,18 @@ def add_parsers(sub) -> None:
     p.add_argument("--quiet", action="store_true")
     add_inference_args(p, search=3, fit_color=50)
     p.set_defaults(func=cmd_distill, outputs=[("out", "dir")])
+
+    r = sub.add_parser("refiner", help="train a learnt refinement pass on distillation targets, the encoder frozen (resumable)")
+    r.add_argument("checkpoint", help="the trained model whose targets these are: run folder, .safetensors, or a shipped name")
+    r.add_argument("data", help="the dataset the targets were made on")
+    r.add_argument("--targets", required=True, help="a `prismonet distill` folder made by this model")
+    r.add_argument("--out", required=True, help="run folder; rerun the same command to resume")
+    r.add_argument("--split", default="train")
+    r.add_argument("--steps", type=int, default=3000)
+    r.add_argument("--batch", type=int, default=32, help="scenes per step")
+    r.add_argument("--lr", type=float, default=3e-4)
+    r.add_argument("--holdout", type=int, default=256, help="the last N scenes with targets, held out (logged)")
+    r.add_argument("--texture", type=float, default=0.1, help="weight of the texture-latent term")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])

@@ -60,6 +60,13 @@ class ModelConfig:
     far_depth: float = 12.0
     soft_mask_tau: float = 0.0
     """> 0: also render soft silhouettes (world units of SDF per unit logit), needed by L_mask."""
+    refine_passes: int = 0
+    """Learnt refinement passes after the encoder (beyond the paper; ``prismonet.model.refiner``): each
+    looks at every slot's render against the image and corrects its pose, scale and texture latent,
+    then renders again. 0: the paper's model."""
+    refiner_channels: tuple[int, ...] = (32, 32, 64, 64)
+    """Conv blocks of the refiner (as ``channels``)."""
+    refiner_fc: tuple[int, ...] = (256, 256)
 
     def __post_init__(self) -> None:
         if self.pose_frame not in ("world", "camera"):
@@ -72,6 +79,10 @@ class ModelConfig:
 
         if self.num_slots > MAX_SLOTS or self.image_size > MAX_IMAGE_SIDE:
             raise ValueError(f"num_slots must be at most {MAX_SLOTS} and image_size at most {MAX_IMAGE_SIDE}, got {self.num_slots}, {self.image_size}")
+        if self.refine_passes < 0 or (self.refine_passes and self.presence):
+            raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
+        if self.refine_passes and self.image_size % (2 ** len(self.refiner_channels)) != 0:
+            raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.refiner_channels)} (refiner_channels)")
         lo, hi = self.scale_range
         if not 0 < lo < hi:
             raise ValueError(f"scale_range must satisfy 0 < min < max, got {self.scale_range}")

@@ -16,6 +16,7 @@ from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
+from prismonet.model.refiner import SlotRefiner, apply_correction, slot_latents, slot_views
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
@@ -81,6 +82,8 @@ class PriSMONet(nn.Module):
                 head.bias[-1] = PRESENCE_INIT_LOGIT
         self.bg_encoder = ConvEncoder(3, cfg.bg_channels, (64,), cfg.image_size, 3)
         self.texture = TextureField(cfg.tex_dim, cfg.texture_width, cfg.texture_depth)
+        if cfg.refine_passes:
+            self.refiner = SlotRefiner(self.sh_dim, cfg.tex_dim, cfg.image_size, cfg.refiner_channels, cfg.refiner_fc)
         self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
         self.register_buffer("pos_scale", torch.tensor(cfg.position_scale), persistent=False)
 
@@ -146,7 +149,7 @@ class PriSMONet(nn.Module):
 
     # -- the model ----------------------------------------------------------------------
     def forward(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor,
-                num_slots: int | None = None, stop: BoundStop | None = None) -> ModelOutput:
+                num_slots: int | None = None, stop: BoundStop | None = None, refine: bool = True) -> ModelOutput:
         """Decompose images ``(B, 3, H, W)`` (cameras ``K (B, 3, 3)``, ``T_world_cam (B, 4, 4)``,
         ground heights ``(B,)``) into ``num_slots`` objects (default ``cfg.num_slots``).
 
@@ -154,6 +157,9 @@ class PriSMONet(nn.Module):
         when a step's slot explains nothing more (that slot is dropped); its remaining slots are
         inactive (``params.active``) and cast no ray, and the loop ends when every scene has
         stopped. ``None``: all steps run.
+
+        With ``cfg.refine_passes`` the refiner then corrects every slot that many times (``refine``
+        ``False``: the encoder's slots, unrefined).
 
         With ``cfg.presence``: in training every slot is rendered and the composite is
         ``presence_composite``; otherwise a slot whose presence is below 0.5 is dropped (inactive), and
@@ -238,7 +244,24 @@ class PriSMONet(nn.Module):
             soft = None if soft is None else soft * seen[:, :, None, None]  # L_mask sees present slots
         else:
             comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
-        return ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
+        out = ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
+        for _ in range(self.cfg.refine_passes if refine else 0):
+            out = self.refine_slots(out, image, K, T_world_cam, ground_z)
+        return out
+
+    def refine_slots(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                     ground_z: torch.Tensor) -> ModelOutput:
+        """One refinement pass (``prismonet.model.refiner``): every active slot of ``out`` corrected by the
+        refiner from its render against ``image``, then all rendered again."""
+        params = out.latents.params
+        views = slot_views(image, out.composite.image, out.composite.instance, out.obj_mask)
+        delta = self.refiner(views, slot_latents(params, self.pos_offset, self.pos_scale))
+        new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range)
+        H, W = image.shape[-2:]
+        obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
+        comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
+        return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
+                           obj.soft_mask, out.presence, out.slot_steps)
 
     def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""

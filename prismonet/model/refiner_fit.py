@@ -1,0 +1,185 @@
+"""Training the refiner (``prismonet.model.refiner``) on self-distillation targets, the encoder frozen.
+
+1. The trained model decodes the scenes that have targets (``prismonet distill``: the test-time search and
+   colour fit on *training* scenes, from their RGB-D alone), once, without refinement; its composite, slot
+   silhouettes and latents are kept in memory.
+2. The refiner learns to move those slots onto their targets: ``distill.distill_loss`` on the corrected
+   latents (position, scale, yaw, texture; hidden slots are not targets). No render is needed, so a step
+   costs a few milliseconds.
+3. The last ``holdout`` scenes with targets are held out: their loss is logged beside the loss of no
+   correction at all, so a run shows how much of the way to the search it goes on scenes it did not fit.
+
+Resumable: ``RUN/checkpoint.safetensors`` (refiner, Adam, step) is written atomically every
+``checkpoint_every`` steps; rerunning the same command resumes. The result is a whole scene model,
+``RUN/model.safetensors`` + ``RUN/model.json`` (the encoder's weights, the refiner's, ``refine_passes`` 1).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from prismonet.model.distill import DistillError, DistillTargets, DistillWeights, distill_loss
+from prismonet.model.refiner import apply_correction, slot_latents, slot_views
+
+
+@dataclass(frozen=True)
+class RefinerFitConfig:
+    """One refiner training run."""
+
+    steps: int = 3000
+    batch_size: int = 32
+    """Scenes per step (each gives ``num_slots`` slot views)."""
+    lr: float = 3e-4
+    """Adam; a cosine from it down to 1 % at ``steps``."""
+    weight_decay: float = 1e-4
+    holdout: int = 256
+    """The last scenes with targets, held out for the logged validation loss."""
+    seed: int = 0
+    checkpoint_every: int = 250
+    texture: float = 0.1
+    """Weight of the texture-latent term (``DistillWeights.texture``)."""
+
+    def __post_init__(self) -> None:
+        if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0:
+            raise ValueError("refiner fit: steps, batch_size, lr and checkpoint_every must be positive and holdout >= 0, got "
+                             f"{self.steps}, {self.batch_size}, {self.lr}, {self.checkpoint_every}, {self.holdout}")
+        if self.weight_decay < 0 or self.texture < 0:
+            raise ValueError(f"refiner fit: weight_decay and texture must be >= 0, got {self.weight_decay}, {self.texture}")
+
+
+def with_refiner(model, passes: int = 1):
+    """A copy of a trained scene model with a fresh (identity) refiner of ``passes`` passes; the
+    encoder, background encoder and texture field keep their weights."""
+    from prismonet.model.prismonet import PriSMONet
+
+    new = PriSMONet(replace(model.cfg, refine_passes=passes), prior=model.prior)
+    own = {k: v for k, v in new.state_dict().items() if k.startswith("refiner.")}
+    new.load_state_dict({**model.state_dict(), **own})
+    return new
+
+
+@torch.no_grad()
+def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
+    """The model's unrefined decoding of scenes ``0 .. count-1``: composite colour (float16), instance
+    ids, slot silhouettes and latents."""
+    from tqdm import tqdm
+
+    model.eval()
+    rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("comp", "instance", "obj_mask", "z_sh", "z_tex", "position", "cos_sin", "scale")}
+    for s in tqdm(range(0, count, batch_size), desc="encoder outputs", unit="batch", disable=not progress):
+        b = ds.batch(list(range(s, min(s + batch_size, count))))
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+        p = out.latents.params
+        rows["comp"].append(out.composite.image.half())
+        rows["instance"].append(out.composite.instance.to(torch.uint8))
+        rows["obj_mask"].append(out.obj_mask)
+        for k in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
+            rows[k].append(getattr(p, k))
+    return {k: torch.cat(v) for k, v in rows.items()}
+
+
+def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
+    from prismonet.render import SceneParams
+
+    b = ds.batch(idx.tolist())
+    views = slot_views(b.rgb, cache["comp"][idx].float(), cache["instance"][idx].long(), cache["obj_mask"][idx])
+    params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
+    delta = model.refiner(views, slot_latents(params, model.pos_offset, model.pos_scale))
+    new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
+    t, have = targets.lookup(idx)
+    return distill_loss(new, t["bg_color"], t, have, weights)
+
+
+def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128) -> float:
+    model.refiner.eval()
+    with torch.no_grad():
+        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights), len(idx[i:i + batch])) for i in range(0, len(idx), batch)]
+    model.refiner.train()
+    return float(sum(l * n for l, n in parts) / max(1, sum(n for _, n in parts)))
+
+
+def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: RefinerFitConfig = RefinerFitConfig(),
+                info: dict | None = None, progress: bool = True) -> dict:
+    """Train ``model``'s refiner (``model.cfg.refine_passes`` >= 1; see ``with_refiner``) on the targets in
+    ``targets_dir`` for the scenes of ``ds`` (the split they were made on), then save the whole model in
+    ``out_dir``. ``info``: the base model's record (its training config is kept). Returns a summary."""
+    from tqdm import tqdm
+
+    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.model.io import save_model
+
+    if not model.cfg.refine_passes:
+        raise DistillError("the model has no refiner (refine_passes 0): start from with_refiner(model)")
+    targets = DistillTargets(targets_dir, model.cfg.num_slots)
+    count = min(targets.count, len(ds))
+    if count <= cfg.holdout:
+        raise DistillError(f"{targets_dir}: {targets.count} scenes with targets, need more than the {cfg.holdout} held out")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # ``steps`` may change when a run resumes (to train longer); nothing else may
+    record = {"fit": {k: v for k, v in asdict(cfg).items() if k != "steps"}, "targets": str(targets_dir), "target_scenes": count}
+    ckpt = out / "checkpoint.safetensors"
+    weights = DistillWeights(background=0.0, texture=cfg.texture)
+    opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    step = 0
+    if ckpt.is_file():
+        tensors, meta = load_checkpoint(ckpt)
+        if meta.get("record") != json.loads(json.dumps(record)):
+            raise DistillError(f"{ckpt}: a run with other settings; use a new folder")
+        model.refiner.load_state_dict({k[len("refiner."):]: v for k, v in tensors.items() if k.startswith("refiner.")})
+        load_optimizer(opt, tensors, meta["optimizer"])
+        step = meta["step"]
+    cache = encoder_cache(model, ds, count, progress=progress)
+    train_n = count - cfg.holdout
+    held = torch.arange(train_n, count)
+    log = out / "log.jsonl"
+    if step == 0:
+        log.write_text("")
+        with log.open("a") as f:  # the loss of no correction: where the refiner starts
+            f.write(json.dumps({"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights)}) + "\n")
+
+    def save(at: int) -> None:
+        t, d = optimizer_tensors(opt)
+        save_checkpoint(ckpt, {**{f"refiner.{k}": v for k, v in model.refiner.state_dict().items()}, **t},
+                        {"step": at, "record": record, "optimizer": d})
+
+    model.refiner.train()
+    t0, losses = time.perf_counter(), []
+    bar = tqdm(total=cfg.steps, initial=step, desc="refiner", unit="step", disable=not progress)
+    try:
+        while step < cfg.steps:
+            for g in opt.param_groups:
+                g["lr"] = cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
+            gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+            idx = torch.randint(0, train_n, (cfg.batch_size,), generator=gen)
+            loss = _loss(model, cache, ds, targets, idx, weights)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+            step += 1
+            bar.update(1)
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                row = {"step": step, "train": sum(losses) / len(losses), "held_out": _held_out_loss(model, cache, ds, targets, held, weights)}
+                losses = []
+                with log.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+                bar.set_postfix(held_out=f"{row['held_out']:.4f}")
+                save(step)
+    except KeyboardInterrupt:
+        save(step)
+        raise
+    finally:
+        bar.close()
+    model.eval()
+    base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
+    save_model(model, out / "model", {**base, "refiner_fit": record})
+    rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    return {"steps": step, "held_out_start": rows[0]["held_out"], "held_out_end": rows[-1]["held_out"],
+            "seconds": time.perf_counter() - t0}

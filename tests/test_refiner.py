@@ -1,0 +1,144 @@
+"""The learnt refinement pass: its corrections (hand-computed), its inputs, a fresh refiner is the identity,
+and its training on distillation targets (learns a known correction, resumes, saves a model that loads)."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, apply_correction, slot_latents,
+                                     slot_views)
+from prismonet.render import SceneParams
+
+
+def two_slots(dtype=torch.float32):
+    return SceneParams(torch.zeros(1, 2, 8, dtype=dtype), torch.zeros(1, 2, 7, dtype=dtype),
+                       torch.tensor([[[0.0, 0.0, 0.5], [1.0, -1.0, 0.4]]], dtype=dtype),
+                       torch.tensor([[[1.0, 0.0], [0.0, 1.0]]], dtype=dtype), torch.tensor([[0.5, 0.4]], dtype=dtype))
+
+
+def test_correction_hand_computed():
+    """Position moves by ``pos_scale`` times the output, the yaw turns by ``MAX_TURN tanh``, the scale
+    takes the factor ``exp(MAX_LOG_SCALE tanh)``, the texture latent adds the rest; an inactive slot keeps all."""
+    p = two_slots()
+    d = torch.zeros(2, 12)
+    d[0, :3] = torch.tensor([0.1, -0.2, 0.0])
+    d[0, 3] = math.atanh(0.5)  # a turn of MAX_TURN / 2
+    d[0, 4] = math.atanh(-0.25)
+    d[0, 5:] = 1.0
+    d[1] = 3.0
+    pos_scale = torch.tensor([1.5, 1.5, 0.5])
+    new = apply_correction(p, d, pos_scale, (0.25, 0.9))
+    assert new.position[0, 0].tolist() == pytest.approx([0.15, -0.3, 0.5])
+    turn = MAX_TURN / 2
+    assert new.cos_sin[0, 0].tolist() == pytest.approx([math.cos(turn), math.sin(turn)], abs=1e-6)
+    assert float(new.scale[0, 0]) == pytest.approx(0.5 * math.exp(-0.25 * MAX_LOG_SCALE), rel=1e-6)
+    assert new.z_tex[0, 0].tolist() == pytest.approx([1.0] * 7)
+    assert float(new.scale[0, 1]) == pytest.approx(0.4 * math.exp(MAX_LOG_SCALE * math.tanh(3.0)), rel=1e-6)
+    assert float(apply_correction(p, d, pos_scale, (0.25, 0.5)).scale[0, 1]) == pytest.approx(0.5)  # kept in the range
+    p.active = torch.tensor([[True, False]])
+    kept = apply_correction(p, d, pos_scale, (0.25, 0.9))
+    for name in ("position", "cos_sin", "scale", "z_tex"):
+        assert torch.equal(getattr(kept, name)[0, 1], getattr(p, name)[0, 1])
+    assert torch.equal(kept.position[0, 0], new.position[0, 0])
+
+
+def test_correction_gradcheck():
+    p = two_slots(torch.float64)
+    d = torch.randn(2, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 0.3
+    d.requires_grad_(True)
+
+    def f(x):
+        n = apply_correction(p, x, torch.tensor([1.5, 1.5, 0.5], dtype=torch.float64), (0.1, 5.0))
+        return n.position, n.cos_sin, n.scale, n.z_tex
+
+    assert torch.autograd.gradcheck(f, (d,))
+
+
+def test_slot_views_and_latents():
+    B, N, H, W = 2, 3, 8, 8
+    g = torch.Generator().manual_seed(1)
+    image, comp = torch.rand(B, 3, H, W, generator=g), torch.rand(B, 3, H, W, generator=g)
+    instance = torch.randint(0, N + 1, (B, H, W), generator=g)
+    obj_mask = torch.rand(B, N, H, W, generator=g) > 0.5
+    v = slot_views(image, comp, instance, obj_mask).reshape(B, N, IN_CHANNELS, H, W)
+    assert torch.equal(v[1, 2, :3], image[1]) and torch.allclose(v[1, 2, 3:6], image[1] - comp[1])
+    assert torch.equal(v[1, 2, 6], (instance[1] == 3).float()) and torch.equal(v[0, 1, 7], obj_mask[0, 1].float())
+    p = two_slots()
+    lat = slot_latents(p, torch.tensor([0.0, 0.0, 0.4]), torch.tensor([1.5, 1.5, 0.5])).reshape(2, -1)
+    assert lat.shape == (2, 8 + 7 + 6)
+    assert lat[1, 15:18].tolist() == pytest.approx([1 / 1.5, -1 / 1.5, 0.0], abs=1e-6)
+    assert float(lat[1, 20]) == pytest.approx(math.log(0.4))
+
+
+def test_fresh_refiner_is_the_identity(shipped):
+    from prismonet.model.refiner_fit import with_refiner
+
+    model, b, out = shipped
+    ref = with_refiner(model).eval()
+    assert ref.cfg.refine_passes == 1
+    with torch.no_grad():
+        r = ref(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        plain = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+    for name in ("position", "scale", "cos_sin", "z_tex", "z_sh"):
+        assert torch.allclose(getattr(r.latents.params, name), getattr(out.latents.params, name), atol=1e-6)
+        assert torch.equal(getattr(plain.latents.params, name), getattr(out.latents.params, name))
+    assert torch.allclose(r.composite.image, out.composite.image, atol=1e-5)
+
+
+def _shifted_targets(model, ds, folder, count, shift):
+    """Targets ``shift`` away from the model's own slots (a known correction), in ``distill``'s format."""
+    from prismonet.checkpoint import save_checkpoint
+
+    b = ds.batch(list(range(count)))
+    with torch.no_grad():
+        p = model(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params
+    folder.mkdir()
+    save_checkpoint(folder / "chunk_00000.safetensors",
+                    {"scale": p.scale, "position": p.position + torch.tensor(shift), "cos_sin": p.cos_sin, "z_tex": p.z_tex,
+                     "bg_color": torch.zeros(count, 3), "visible": torch.full(p.scale.shape, 100.0)}, {"first": 0})
+    (folder / "targets.json").write_text(json.dumps({"count": count, "chunk": 256, "num_slots": model.cfg.num_slots}))
+
+
+def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
+    """Targets 0.2 to the side of every encoder slot: the held-out loss falls from the shift's, the saved
+    model loads with its refiner and moves its slots that way; a rerun with more steps resumes."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30)
+    s = fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    assert s["held_out_start"] == pytest.approx(0.2, abs=1e-4)  # position L1 of the shift, nothing else
+    more = fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "run",
+                       RefinerFitConfig(**{**cfg.__dict__, "steps": 60}), progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [0, 30, 60]  # resumed at 30, not started again
+    assert more["held_out_end"] < 0.5 * s["held_out_start"]
+    loaded, info = load_model(tmp_path / "run")
+    assert loaded.cfg.refine_passes == 1 and info["refiner_fit"]["target_scenes"] == 12
+    b = ds.batch([0, 1])
+    with torch.no_grad():
+        moved = loaded(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params.position - shipped[2].latents.params.position[:2]
+    assert float(moved[..., 0].mean()) > 0.1
+
+
+def test_fit_refiner_bad_input(shipped, tmp_path):
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import DistillError
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    with pytest.raises(ValueError, match="steps"):
+        RefinerFitConfig(steps=0)
+    ds = SceneDataset(shipped_samples(), split="test")
+    with pytest.raises(DistillError, match="no refiner"):
+        fit_refiner(shipped[0], ds, tmp_path, tmp_path / "run")
+    _shifted_targets(shipped[0], ds, tmp_path / "t", 4, [0.0, 0.0, 0.0])
+    with pytest.raises(DistillError, match="held out"):
+        fit_refiner(with_refiner(shipped[0]), ds, tmp_path / "t", tmp_path / "run", RefinerFitConfig(holdout=4))
