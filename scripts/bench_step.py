@@ -4,7 +4,7 @@
 
 A step is what the trainer does (noisy inputs, the recurrent forward pass with soft silhouettes,
 every loss of ``configs/clevr3_shipped.json`` at its final schedule, backward, clipping, Adam) on
-batch 8 of the training split, starting from the shipped weights (a trained model's hit pattern,
+batch 8 of the training split, starting from the weights of `clevr3_fc` (the shipped encoder without its refinement pass: a trained model's hit pattern,
 which is what a fine-tune or distillation run sees). Variants run interleaved, ``--steps`` steps
 each per round, on the same batches, so that the host's load drifts over all of them alike; the
 table gives medians over every timed step. Variants (cumulative, each adds one change):
@@ -39,7 +39,7 @@ def _argmin_zbuffer(obj_depth, obj_mask, upto=None):
 class ShippedStep:
     """One training step as the trainer takes it (noisy inputs, forward, every loss of
     ``configs/clevr3_shipped.json`` at its final schedule, backward, clipping, Adam), batch 8 of the training
-    split, from the shipped weights; ``step(seed)`` returns its seconds, ``reset()`` restores the weights."""
+    split, from `clevr3_fc`'s weights; ``step(seed)`` returns its seconds, ``reset()`` restores the weights."""
 
     def __init__(self, data: str) -> None:
         from prismonet.config import load_config
@@ -48,7 +48,7 @@ class ShippedStep:
         from prismonet.model.trainer import TrainConfig
 
         self.cfg = load_config(TrainConfig, "configs/clevr3_shipped.json", [f"data={data}"])
-        self.model = load_model("shipped")[0]
+        self.model = load_model("clevr3_fc")[0]  # the encoder-only model: the step the issue profiled has no refiner
         self.model.train()
         self.ds = SceneDataset(self.cfg.data, "train")
         self.params = [p for p in self.model.parameters() if p.requires_grad]

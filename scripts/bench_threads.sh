@@ -13,7 +13,7 @@ LOAD=
 step() { env "$@" python3 scripts/bench_step.py --data "$DATA" --variants blur --rounds 3 --steps 4 | tail -1 | cut -d'|' -f3; }
 trainer() {
   python3 -m prismonet train configs/clevr3_shipped.json --out "$TMP/$1-$2" --quiet --set data="$DATA" --set steps=100 \
-    --set threads="$2" --set init_from=shipped --set lr_decay_from=null --set 'lr_restarts=[]' --set checkpoint_every=1000 \
+    --set threads="$2" --set init_from=clevr3_fc --set lr_decay_from=null --set 'lr_restarts=[]' --set checkpoint_every=1000 \
     --set image_every=1000 --set log_every=25 >/dev/null
   python3 -c "
 import json, sys

@@ -136,13 +136,13 @@ def test_training_uses_the_targets(tmp_path, monkeypatch):
     from prismonet.model.losses import LossConfig
     from prismonet.model.trainer import TrainConfig, train
 
-    model, _ = load_model("shipped")
+    model, _ = load_model("clevr3_fc")  # the encoder-only model the run below starts from
     ds = SceneDataset(shipped_samples(), split="test")
     fit_targets(model, ds, tmp_path / "t", len(ds), InferenceConfig.of(search=1, fit_color=2), progress=False)
     weights = []  # the texture term's weight reaches the loss from the config (0 here)
     original = distill.distill_loss
     monkeypatch.setattr(distill, "distill_loss", lambda *a: weights.append(a[4].texture) or original(*a))
-    cfg = TrainConfig(data=str(shipped_samples()), split="test", steps=2, log_every=1, init_from="shipped",
+    cfg = TrainConfig(data=str(shipped_samples()), split="test", steps=2, log_every=1, init_from="clevr3_fc",
                       model=ModelConfig(soft_mask_tau=0.05),
                       loss=LossConfig(w_mask=0.1, mask_from_depth=True, w_distill=0.5, distill_texture=0.0),
                       distill=str(tmp_path / "t"))

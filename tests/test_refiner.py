@@ -75,12 +75,13 @@ def test_slot_views_and_latents():
 def test_fresh_refiner_is_the_identity(shipped):
     from prismonet.model.refiner_fit import with_refiner
 
-    model, b, out = shipped
+    model, b, _ = shipped
     ref = with_refiner(model).eval()
     assert ref.cfg.refine_passes == 1
     with torch.no_grad():
         r = ref(b.rgb, b.K, b.T_world_cam, b.ground_z)
         plain = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
     for name in ("position", "scale", "cos_sin", "z_tex", "z_sh"):
         assert torch.allclose(getattr(r.latents.params, name), getattr(out.latents.params, name), atol=1e-6)
         assert torch.equal(getattr(plain.latents.params, name), getattr(out.latents.params, name))
@@ -93,7 +94,7 @@ def _shifted_targets(model, ds, folder, count, shift):
 
     b = ds.batch(list(range(count)))
     with torch.no_grad():
-        p = model(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params
+        p = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False).latents.params
     folder.mkdir()
     save_checkpoint(folder / "chunk_00000.safetensors",
                     {"scale": p.scale, "position": p.position + torch.tensor(shift), "cos_sin": p.cos_sin, "z_tex": p.z_tex,
@@ -124,7 +125,8 @@ def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
     assert loaded.cfg.refine_passes == 1 and info["refiner_fit"]["target_scenes"] == 12
     b = ds.batch([0, 1])
     with torch.no_grad():
-        moved = loaded(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params.position - shipped[2].latents.params.position[:2]
+        moved = (loaded(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params.position
+                 - loaded(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False).latents.params.position)
     assert float(moved[..., 0].mean()) > 0.1
 
 
@@ -137,8 +139,34 @@ def test_fit_refiner_bad_input(shipped, tmp_path):
     with pytest.raises(ValueError, match="steps"):
         RefinerFitConfig(steps=0)
     ds = SceneDataset(shipped_samples(), split="test")
+    from prismonet.model.io import load_model
+
     with pytest.raises(DistillError, match="no refiner"):
-        fit_refiner(shipped[0], ds, tmp_path, tmp_path / "run")
+        fit_refiner(load_model("clevr3_fc")[0], ds, tmp_path, tmp_path / "run")
     _shifted_targets(shipped[0], ds, tmp_path / "t", 4, [0.0, 0.0, 0.0])
     with pytest.raises(DistillError, match="held out"):
         fit_refiner(with_refiner(shipped[0]), ds, tmp_path / "t", tmp_path / "run", RefinerFitConfig(holdout=4))
+
+
+def test_refiner_corrects_the_chosen_and_the_kept_slots(shipped):
+    """With extra encoder steps the choice is among the encoder's slots and the refiner corrects the chosen
+    ones; with stopping it corrects the slots kept, the others stay inactive and render nothing."""
+    from prismonet.model.select import decode_overcomplete, select_slots
+    from prismonet.model.stopping import StopRule
+
+    model, b, _ = shipped
+    assert model.cfg.refine_passes == 1  # the shipped model has a refiner
+    with torch.no_grad():
+        chosen = decode_overcomplete(model, b, extra=1)
+        four = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=4, refine=False)
+        expect = model.refine_slots(select_slots(four, b.rgb, b.depth, 3), b.rgb, b.K, b.T_world_cam, b.ground_z)
+        assert torch.equal(chosen.slot_steps, expect.slot_steps)
+        assert torch.allclose(chosen.latents.params.position, expect.latents.params.position, atol=1e-6)
+        rule = StopRule().bind(b.rgb, b.depth)
+        stopped = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=5, stop=rule)
+        plain = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=5, stop=rule, refine=False)
+    active = plain.latents.params.active
+    assert torch.equal(stopped.latents.params.active, active) and not active.all()
+    assert not stopped.obj_mask[~active].any()
+    assert torch.equal(stopped.latents.params.position[~active], plain.latents.params.position[~active])
+    assert not torch.equal(stopped.latents.params.position[active], plain.latents.params.position[active])

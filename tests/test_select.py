@@ -89,7 +89,7 @@ def test_selection_finds_the_subset_that_made_the_image():
 
 
 def test_overcomplete_decoding_of_the_shipped_model():
-    model, info = load_model("shipped")
+    model, info = load_model("clevr3_fc")  # the encoder-only model (with a refiner: tests/test_refiner.py)
     b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
     with torch.no_grad():
         plain = model(b.rgb, b.K, b.T_world_cam, b.ground_z)

@@ -14,7 +14,7 @@ from prismonet.model.stopping import StopRule, erode, keep_first, stop_counts
 @pytest.fixture(scope="module")
 def shipped():
     torch.manual_seed(0)
-    model, _ = load_model("shipped", num_slots=5)
+    model, _ = load_model("clevr3_fc", num_slots=5)  # the encoder-only model: stopping is a rule on the encoder's steps
     b = SceneDataset(shipped_samples(), split="test").batch(list(range(6)))
     return model, b
 

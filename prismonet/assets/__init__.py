@@ -7,9 +7,14 @@ from importlib import resources
 from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-25: the
-far-clip + seek model below plus 4K steps of far clip + seek + self-distillation from its own far-clipped search
-targets, ``configs/clevr3_seek_distill_fc.json``)."""
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-25, session
+43: the far-clipped distilled model below with a learnt refinement pass, ``model.refine_passes`` 1: the refiner
+fitted to that model's own search targets with the encoder frozen (``prismonet refiner``), then 4K steps of both
+together, ``configs/clevr3_refiner.json``)."""
+FC_MODEL = "clevr3_fc_model"
+"""The far-clipped distilled model (shipped on 2026-11-25 before session 43; the far-clip + seek model below plus
+4K steps of far clip + seek + self-distillation from its own far-clipped search targets,
+``configs/clevr3_seek_distill_fc.json``): what the refiner of ``configs/clevr3_refiner.json`` was fitted to."""
 SEEK_MODEL = "clevr3_seek_model"
 """The far-clip + seek model (shipped 2026-11-24 to 11-25; the self-distilled model below plus 16K steps of
 ``configs/clevr3_seek.json``): what ``configs/clevr3_seek_distill_fc.json`` starts from."""
@@ -24,6 +29,7 @@ SHIPPED_SAMPLES = "samples/clevr3"
 
 MODELS = {
     "clevr3": SHIPPED_MODEL,
+    "clevr3_fc": FC_MODEL,
     "clevr3_60k": PREVIOUS_MODEL,
     "clevr3_seek": SEEK_MODEL,
     "clevr3_distilled": DISTILLED_MODEL,

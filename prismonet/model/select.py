@@ -78,13 +78,18 @@ def select_slots(out: ModelOutput, rgb: torch.Tensor, depth: torch.Tensor | None
 def decode_overcomplete(model, batch, num_objects: int | None = None, extra: int = 0, use_depth: bool = True,
                         w_image: float = 1.0, w_depth: float = 0.1, stop=None) -> ModelOutput:
     """``model``'s output on ``batch`` with ``num_objects`` slots (default: the model's), chosen among
-    ``num_objects + extra`` encoder steps by ``select_slots`` (against depth too, if ``use_depth``).
+    ``num_objects + extra`` encoder steps by ``select_slots`` (against depth too, if ``use_depth``); a model
+    with ``refine_passes`` refines the chosen slots, after the choice.
     ``stop``: a ``StopRule`` that ends the encoder early per scene (``prismonet.model.stopping``)."""
     check_extra_slots(extra)
     N = model.cfg.num_slots if num_objects is None else num_objects
     bound = None if stop is None else stop.bind(batch.rgb, batch.depth if use_depth else None)
-    out = model(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z, num_slots=N + extra, stop=bound)
+    out = model(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z, num_slots=N + extra, stop=bound, refine=extra == 0)
     if extra == 0:
         return out
-    return select_slots(out, batch.rgb, batch.depth if use_depth else None, N, w_image, w_depth)
+    # the choice is among the encoder's slots; a model's refinement passes then correct the chosen ones
+    out = select_slots(out, batch.rgb, batch.depth if use_depth else None, N, w_image, w_depth)
+    for _ in range(model.cfg.refine_passes):
+        out = model.refine_slots(out, batch.rgb, batch.K, batch.T_world_cam, batch.ground_z)
+    return out
 
