@@ -62,7 +62,8 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
         records.append({"scene": name, "figure": str(fig), "latent_scene": str(out / f"{name}.json"), **m})
     keys = [k for k in records[0] if isinstance(records[0][k], float)]
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}
-    result = {"model": str(model), "inference": cfg.record(), "steps": cfg.describe(), "scenes": records, "mean": mean}
+    result = {"model": str(model), "inference": cfg.record(), "steps": cfg.describe(), "refine_passes": net.cfg.refine_passes,
+              "scenes": records, "mean": mean}
     (out / "metrics.json").write_text(json.dumps(result, indent=1))
     return result
 

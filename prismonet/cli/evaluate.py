@@ -20,16 +20,17 @@ def cmd_demo(args) -> int:
     print(format_demo_table(result))
     out = Path(args.out)
     print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "
-          f"in {time.perf_counter() - t0:.1f} s ({cfg.describe()})")
+          f"in {time.perf_counter() - t0:.1f} s ({cfg.describe()}{refined_note(result['refine_passes'])})")
     print(f"figures:       {out}/scene_*.png  (input | reconstruction | depth target | depth | instances; each object alone)")
     print(f"latent scenes: {out}/scene_*.json  (prismonet export / edit / views take these)")
     print(f"metrics:       {out / 'metrics.json'}")
     return 0
 
 
-def refined_note(model) -> str:
-    """What the model's own learnt refinement passes add to a description of the test-time steps."""
-    n = model.cfg.refine_passes
+def refined_note(passes: int) -> str:
+    """What a model's own learnt refinement passes (``model.cfg.refine_passes``) add to a description of the
+    test-time steps."""
+    n = passes
     return f" (the encoder's slots corrected by the model's {n} learnt refinement pass{'es' if n > 1 else ''})" if n else ""
 
 
@@ -48,7 +49,7 @@ def cmd_evaluate(args) -> int:
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
-          f"{cfg.describe()}{refined_note(model)}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+          f"{cfg.describe()}{refined_note(model.cfg.refine_passes)}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
     print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")
