@@ -57,9 +57,10 @@ def cmd_refiner(args) -> int:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
-    meta = json.loads((Path(args.targets) / "targets.json").read_text()) if (Path(args.targets) / "targets.json").is_file() else {}
     from prismonet.model.distill_fit import weights_digest
 
+    info_path = Path(args.targets) / "targets.json"  # without it fit_refiner says what is missing
+    meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
     if meta and meta.get("model_digest") != weights_digest(base):
         raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {args.checkpoint}'s")
     model = with_refiner(base)

@@ -245,23 +245,24 @@ class PriSMONet(nn.Module):
         else:
             comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
         out = ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
-        for _ in range(self.cfg.refine_passes if refine else 0):
-            out = self.refine_slots(out, image, K, T_world_cam, ground_z)
-        return out
+        return self.refine_slots(out, image, K, T_world_cam, ground_z) if refine else out
 
     def refine_slots(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                      ground_z: torch.Tensor) -> ModelOutput:
-        """One refinement pass (``prismonet.model.refiner``): every active slot of ``out`` corrected by the
-        refiner from its render against ``image``, then all rendered again."""
-        params = out.latents.params
-        views = slot_views(image, out.composite.image, out.composite.instance, out.obj_mask)
-        delta = self.refiner(views, slot_latents(params, self.pos_offset, self.pos_scale))
-        new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range)
+        """The model's ``cfg.refine_passes`` refinement passes (``prismonet.model.refiner``; none: ``out`` as
+        it is): each corrects every active slot of ``out`` from its render against ``image``, then renders all
+        again."""
         H, W = image.shape[-2:]
-        obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
-        comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
-        return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                           obj.soft_mask, out.presence, out.slot_steps)
+        for _ in range(self.cfg.refine_passes):
+            params = out.latents.params
+            views = slot_views(image, out.composite.image, out.composite.instance, out.obj_mask)
+            delta = self.refiner(views, slot_latents(params, self.pos_offset, self.pos_scale))
+            new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range)
+            obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
+            comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
+            out = ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
+                              obj.soft_mask, out.presence, out.slot_steps)
+        return out
 
     def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""

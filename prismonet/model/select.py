@@ -89,7 +89,5 @@ def decode_overcomplete(model, batch, num_objects: int | None = None, extra: int
         return out
     # the choice is among the encoder's slots; a model's refinement passes then correct the chosen ones
     out = select_slots(out, batch.rgb, batch.depth if use_depth else None, N, w_image, w_depth)
-    for _ in range(model.cfg.refine_passes):
-        out = model.refine_slots(out, batch.rgb, batch.K, batch.T_world_cam, batch.ground_z)
-    return out
+    return model.refine_slots(out, batch.rgb, batch.K, batch.T_world_cam, batch.ground_z)
 
