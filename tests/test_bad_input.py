@@ -198,6 +198,8 @@ CASES = [
     ("gain nan", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--normalize", "manual", "--gain", "nan,1,1"], "--gain"),
     ("gain without manual", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--gain", "1,1,1"], "--normalize manual"),
     ("tiny photo", ["real", "prepare", "{tiny}", "--out", "{tmp}/p"], "smaller than"),
+    ("reseed negative", ["evaluate", "shipped", "{good}", "--split", "test", "--reseed", "-1"], "--reseed"),
+    ("reseed cycles 0", ["evaluate", "shipped", "{good}", "--split", "test", "--reseed", "2", "--reseed-cycles", "0"], "--reseed-cycles"),
     ("refiner steps 0", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r", "--steps", "0"], "steps"),
     ("refiner from a refined model", ["refiner", "shipped", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r"], "already has a refiner"),
     ("refiner no targets", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r"], "no distillation targets"),

@@ -25,6 +25,13 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                    help="decode E more encoder steps and keep the slots that best explain the input")
     g.add_argument("--stop", action="store_true",
                    help="stop the encoder once the slots found explain the input; the slots left cost nothing (up to --objects slots)")
+    g.add_argument("--reseed", type=int, default=0, metavar="R",
+                   help="before the search, move idle slots onto the largest parts of the input that no slot explains, "
+                        "up to R per scene (default 0)")
+    g.add_argument("--reseed-cycles", type=int, default=1, metavar="C",
+                   help="with --search: re-seed, then search, C times (default 1)")
+    g.add_argument("--reseed-grow", type=int, default=0, metavar="G",
+                   help="add G empty slots to the model's before re-seeding, for scenes with more objects than slots (default 0)")
     g.add_argument("--search", type=int, default=search, metavar="R",
                    help=f"search each slot's scale, position and yaw for R rounds (default {search}; 3 is the measured setting)")
     g.add_argument("--search-scales", metavar="S,S,...",
@@ -65,7 +72,9 @@ def inference_config(args, has_depth: bool = True):
                               search_far_clip=getattr(args, "search_far_clip", False),
                               search_coarse=getattr(args, "search_coarse", 0),
                               search_grid=getattr(args, "search_grid", 0),
-                              search_shapes=getattr(args, "search_shapes", 0))
+                              search_shapes=getattr(args, "search_shapes", 0),
+                              reseed=getattr(args, "reseed", 0), reseed_cycles=getattr(args, "reseed_cycles", 1),
+                              reseed_grow=getattr(args, "reseed_grow", 0))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

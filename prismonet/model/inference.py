@@ -6,13 +6,15 @@ In order, each off by default:
 0. stopping: the encoder stops once the slots found explain the input (``prismonet.model.stopping``);
 1. over-complete decoding: ``extra_slots`` more encoder steps, the best-explaining slots kept
    (``prismonet.model.select``);
+1b. re-seeding: idle slots moved onto what no slot explains (``prismonet.model.reseed``); with the
+   search, steps 1b and 2 repeat ``reseed.cycles`` times;
 2. pose search: each slot's scale, position and yaw, by coordinate search (``prismonet.model.search``);
 3. refinement: gradient steps on all latents against the training losses (``prismonet.model.refine``);
 4. colour fit: texture latents and background colour against the image, geometry held
    (``prismonet.model.color_fit``);
 5. pruning: the slots that explain nothing are dropped (``prismonet.model.prune``).
 
-``use_depth`` says whether steps 0-3 and 5 may read the scene's depth; ``False`` is the paper's test-time
+``use_depth`` says whether steps 0-3 (1b included) and 5 may read the scene's depth; ``False`` is the paper's test-time
 input (colour alone) and what a photo gives. Every command that decodes scenes (``evaluate``,
 ``reconstruct``, ``demo``, ``real reconstruct``, ``distill``) builds one ``InferenceConfig`` from the
 same flags and calls ``infer``, so a setting means the same thing everywhere.
@@ -30,6 +32,7 @@ from prismonet.model.losses import LossConfig
 from prismonet.model.prismonet import ModelOutput
 from prismonet.model.prune import PRUNE_RULE, prune
 from prismonet.model.refine import RefineConfig, refine
+from prismonet.model.reseed import ReseedConfig, reseed
 from prismonet.model.search import SearchConfig, search_latents
 from prismonet.model.select import check_extra_slots, decode_overcomplete
 from prismonet.model.stopping import StopRule
@@ -53,6 +56,8 @@ class InferenceConfig:
     """Stop the encoder when the slots so far explain the input (``None``: every slot is decoded)."""
     prune: StopRule | None = None
     """Last, drop the slots that explain nothing by this rule's ``min_gain`` (``None``: keep every slot)."""
+    reseed: ReseedConfig = field(default_factory=ReseedConfig)
+    """Move idle slots onto unexplained parts of the input, after the slot choice (``rounds`` 0: none)."""
 
     def __post_init__(self) -> None:
         check_extra_slots(self.extra_slots)
@@ -62,7 +67,7 @@ class InferenceConfig:
            refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False,
            prune: bool = False, search_scales: tuple[float, ...] | None = None,
            search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0,
-           search_shapes: int = 0) -> "InferenceConfig":
+           search_shapes: int = 0, reseed: int = 0, reseed_cycles: int = 1, reseed_grow: int = 0) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each)."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         scales = {} if search_scales is None else {"scales": tuple(search_scales)}
@@ -70,12 +75,13 @@ class InferenceConfig:
                                   shape_nearest=search_shapes, **scales)
         return cls(extra_slots, search_cfg,
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
-                   ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None)
+                   ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None,
+                   ReseedConfig(rounds=reseed, cycles=reseed_cycles, grow=reseed_grow))
 
     @property
     def feed_forward(self) -> bool:
         """True when nothing runs after the encoder."""
-        return not (self.extra_slots or self.search.rounds or self.refine.steps or self.color_fit.steps or self.stop
+        return not (self.extra_slots or self.reseed.rounds or self.search.rounds or self.refine.steps or self.color_fit.steps or self.stop
                     or self.prune)
 
     def without_depth(self) -> "InferenceConfig":
@@ -84,6 +90,9 @@ class InferenceConfig:
     def describe(self) -> str:
         """One line, e.g. ``encoder, then 3 pose-search rounds, 50 colour-fit steps``."""
         steps = [f"{self.extra_slots} extra slots" if self.extra_slots else "",
+                 (f"{self.reseed.rounds} re-seeding rounds" + (f" (then the search, {self.reseed.cycles} times)"
+                  if self.reseed.cycles > 1 and self.search.rounds else "")
+                  + (f" with {self.reseed.grow} slots added" if self.reseed.grow else "")) if self.reseed.rounds else "",
                  (f"{self.search.rounds} pose-search rounds" + ("" if self.search.scales == SearchConfig().scales else
                   " (scales " + ", ".join(f"{v:g}" for v in self.search.scales) + ")")
                   + (", depth clipped" if self.search.far_clip else "")
@@ -116,7 +125,7 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
         loss_cfg: the training losses (selection weights and refinement objective; default ``LossConfig()``).
         num_slots: slots kept (default: the model's).
         on_step: called as ``on_step(name, output)`` after each step that ran: ``"encoder"``,
-            ``"searched"``, ``"refined"``, ``"color_fit"``, ``"pruned"``.
+            ``"reseeded"``, ``"searched"``, ``"refined"``, ``"color_fit"``, ``"pruned"``.
     """
     loss_cfg = loss_cfg or LossConfig()
     report = on_step or (lambda name, out: None)
@@ -124,10 +133,15 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
         out = decode_overcomplete(model, batch, num_slots, cfg.extra_slots, use_depth=cfg.use_depth,
                                   w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth, stop=cfg.stop)
     report("encoder", out)
-    if cfg.search.rounds > 0:
-        with torch.no_grad():
-            out = search_latents(model, out, batch, cfg.search, use_depth=cfg.use_depth)
-        report("searched", out)
+    for cycle in range(cfg.reseed.cycles if cfg.reseed.rounds and cfg.search.rounds else 1):
+        if cfg.reseed.rounds > 0:
+            step = cfg.reseed if cycle == 0 else replace(cfg.reseed, grow=0)  # slots are added once
+            out = reseed(model, out, batch, step, use_depth=cfg.use_depth)
+            report("reseeded", out)
+        if cfg.search.rounds > 0:
+            with torch.no_grad():
+                out = search_latents(model, out, batch, cfg.search, use_depth=cfg.use_depth)
+            report("searched", out)
     if cfg.refine.steps > 0:
         out = refine(model, out, batch, loss_cfg, cfg.refine, use_depth=cfg.use_depth)
         report("refined", out)

@@ -54,14 +54,21 @@ def _photo_tile(photo: np.ndarray, outline: np.ndarray | None, size: tuple[int, 
     return tile
 
 
+SLOTS_PER_ROW = 8
+"""Slot panels per row of a figure (more slots, e.g. added by re-seeding, wrap onto further rows)."""
+
+
 def _object_panels(out, i: int, size, min_pixels: int) -> list[np.ndarray]:
     """Each slot rendered alone over the background, labelled with its visible pixels."""
     from prismonet.render.composite import composite
 
     N = out.obj_depth.shape[1]
     visible = torch.bincount(out.composite.instance[i].reshape(-1), minlength=N + 1)[1:]
+    active = out.latents.params.active
     panels = []
     for k in range(N):
+        if active is not None and not bool(active[i, k]):
+            continue  # never decoded, pruned, or added for re-seeding and not used: nothing to show
         keep = torch.zeros(N, dtype=torch.bool)
         keep[k] = True
         alone = composite(out.obj_depth[i : i + 1, keep], out.obj_mask[i : i + 1, keep], out.obj_color[i : i + 1, keep],
@@ -76,8 +83,9 @@ def decomposition_figure(image: torch.Tensor, out, index: int, path: str | Path,
                          upscale: int = 3, photo: np.ndarray | None = None, photo_outline: np.ndarray | None = None,
                          title: str | None = None, min_pixels: int = MIN_PIXELS) -> Path:
     """Write one scene's figure as PNG. Top row: [photo,] input, reconstruction, [target depth,]
-    rendered depth, instances. Bottom row: each slot rendered alone over the background, with its
-    visible pixels; slots under ``min_pixels`` are washed out and marked "not counted".
+    rendered depth, instances. Below: each active slot rendered alone over the background, with its
+    visible pixels, ``SLOTS_PER_ROW`` (or as many as the top row) per row; slots under ``min_pixels`` are
+    washed out and marked "not counted".
 
     Args:
         image: ``(B, 3, H, W)`` the model's input; ``out``: its ``ModelOutput``; ``index``: which scene.
@@ -106,13 +114,15 @@ def decomposition_figure(image: torch.Tensor, out, index: int, path: str | Path,
     top += [labelled_panel(colorize_depth(d, lo, hi), "depth", size), labelled_panel(colorize_instances(out.composite.instance[i].numpy()), "instances", size)]
     bottom = _object_panels(out, i, size, min_pixels)
     blank = np.full_like(top[0], 255)
-    cols = max(len(top), len(bottom))
+    cols = max(len(top), min(len(bottom), SLOTS_PER_ROW))
+    rows = [top] + [bottom[j : j + cols] for j in range(0, len(bottom), cols)]  # many slots wrap onto more rows
     gap = 4
     lines = []
-    for row in (top + [blank] * (cols - len(top)), bottom + [blank] * (cols - len(bottom))):
+    for row in rows:
+        row = row + [blank] * (cols - len(row))
         sep = np.full((row[0].shape[0], gap, 3), 255, np.uint8)
         lines.append(np.concatenate(sum([[t, sep] for t in row], [])[:-1], axis=1))
-    parts = [lines[0], np.full((gap, lines[0].shape[1], 3), 255, np.uint8), lines[1]]
+    parts = sum([[line, np.full((gap, lines[0].shape[1], 3), 255, np.uint8)] for line in lines], [])[:-1]
     if title:
         head = np.full((LABEL_HEIGHT + 6, lines[0].shape[1], 3), 255, np.uint8)
         _text(head, title, 2, LABEL_HEIGHT, scale=0.5)

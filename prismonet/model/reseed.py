@@ -1,0 +1,293 @@
+"""Re-seed idle slots on what the scene leaves unexplained (beyond the paper; test time, no training).
+
+The recurrent encoder of a many-slot model finds a few objects and then hides its remaining slots
+(EVALUATION.md, "Why the 1-8 model misses objects"); the pose search only moves a slot near where it is,
+so it cannot carry a hidden slot to an object nobody covers. This step does that with the camera's
+geometry: in each round, per scene,
+
+1. the pixels the composition does not explain (``StopRule.unexplained``: colour, and depth when the
+   input has it) are opened (eroded, then dilated back: the one-pixel seams along fitted outlines go,
+   a small object's blob stays whole) and split into connected components (OpenCV); the largest with
+   at least ``min_area`` pixels is the proposal;
+2. the slot that explains least (``prismonet.model.prune``: fewer than ``rule.min_gain`` pixels that the
+   others do not) is the one moved; a scene without such a slot is left alone;
+3. the slot is put where an object resting on the ground would show that component: the ray through
+   the component's centroid meets the plane ``z = ground + s``, and the scale ``s`` is the one whose
+   disc covers the component's area at that depth (a fixed point, ``PLACE_ITERATIONS`` steps); each
+   shape category's medoid code of the prior is tried at ``TRIAL_SCALES`` times that scale (the centre
+   kept on the same ray at the new height), with the texture latent fitted to the component's pixels
+   (``TEXTURE_STEPS`` Adam steps on that slot alone);
+4. the best trial is kept only where it lowers the scene's ``fit_score``, so re-seeding never makes a
+   scene fit worse; a component whose trials all fail is not proposed again, so the next round tries
+   the next largest.
+
+The pose search afterwards (``prismonet.model.search``) fits the new slots as it fits the others.
+Each round costs one single-slot render per shape category and a few texture-field evaluations.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from prismonet.model.fit_score import fit_score
+from prismonet.model.prismonet import ModelOutput, SceneLatents
+from prismonet.model.prune import prune_keep
+from prismonet.model.stopping import StopRule, erode
+from prismonet.render import SceneParams, composite, render_objects
+from prismonet.render.renderer import shade_objects
+
+PLACE_ITERATIONS = 8
+"""Fixed-point steps between the centre's depth and the scale (both start from the scale range's middle)."""
+TEXTURE_STEPS = 30
+"""Adam steps of a new slot's texture latent on the component's pixels."""
+TEXTURE_LR = 0.1
+TRIAL_SCALES = (0.8, 1.0, 1.25)
+"""Multipliers of the placed scale tried per shape: a component partly hidden is smaller than its object."""
+
+
+@dataclass(frozen=True)
+class ReseedConfig:
+    rounds: int = 0
+    """Rounds; each moves at most one idle slot per scene (0: off)."""
+    cycles: int = 1
+    """With the pose search: re-seed, then search, this many times (the search settles the slots placed, and
+    what they still leave unexplained is proposed again)."""
+    grow: int = 0
+    """Empty slots added to the model's before the first round, for scenes with more objects than it has
+    slots (0: the model's slots only)."""
+    min_area: int = 20
+    """Least pixels of an unexplained component (after the opening) worth a slot."""
+    open: int = 1
+    """Radius in pixels of the opening of the unexplained pixels, which removes the seams along fitted outlines."""
+    rule: StopRule = StopRule(min_gain=10)
+    """What an explained pixel is, and how little a slot must explain to count as idle (``min_gain``)."""
+    w_image: float = 1.0
+    w_depth: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.rounds < 0:
+            raise ValueError(f"reseed: the rounds (--reseed) must be >= 0, got {self.rounds}")
+        if self.grow < 0:
+            raise ValueError(f"reseed: the slots to add (--reseed-grow) must be >= 0, got {self.grow}")
+        if self.cycles < 1:
+            raise ValueError(f"reseed: the cycles (--reseed-cycles) must be >= 1, got {self.cycles}")
+        if self.min_area < 1 or self.open < 0:
+            raise ValueError(f"reseed: min_area must be >= 1 and open >= 0, got {self.min_area} and {self.open}")
+
+
+def opening(mask: torch.Tensor, pixels: int) -> torch.Tensor:
+    """``(B, H, W)`` bool ``mask`` opened by a ``(2 pixels + 1)``-square: eroded, then dilated, within ``mask``."""
+    if pixels == 0:
+        return mask
+    k = 2 * pixels + 1
+    grown = F.max_pool2d(erode(mask, pixels)[:, None].float(), k, stride=1, padding=pixels)[:, 0] > 0.5
+    return grown & mask
+
+
+def largest_components(mask: torch.Tensor, min_area: int) -> list[np.ndarray | None]:
+    """Per scene of ``mask (B, H, W)`` bool, the boolean ``(H, W)`` mask of its largest 8-connected
+    component with at least ``min_area`` pixels, or ``None``."""
+    found: list[np.ndarray | None] = []
+    for m in mask.numpy().astype(np.uint8):
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+        if n <= 1:
+            found.append(None)
+            continue
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        best = int(areas.argmax())
+        found.append(labels == best + 1 if areas[best] >= min_area else None)
+    return found
+
+
+def ray_at_height(uv: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, height: torch.Tensor) -> torch.Tensor:
+    """``(B, 3)`` world points where the rays through pixels ``uv (B, 2)`` come down to world ``z = height (B,)``
+    (a ray that never does: its point at camera depth 1e-3)."""
+    d_cam = torch.stack([(uv[:, 0] - K[:, 0, 2]) / K[:, 0, 0], (uv[:, 1] - K[:, 1, 2]) / K[:, 1, 1], torch.ones_like(uv[:, 0])], -1)
+    d_world = torch.einsum("bij,bj->bi", T_world_cam[:, :3, :3], d_cam)  # camera z = 1 per unit of t
+    c = T_world_cam[:, :3, 3]
+    t = ((height - c[:, 2]) / d_world[:, 2].clamp(max=-1e-6)).clamp(min=1e-3)  # rays look down: d_world z < 0
+    return c + t[:, None] * d_world
+
+
+def place_on_ground(uv: torch.Tensor, area: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                    ground_z: torch.Tensor, scale_range: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centres ``(B, 3)`` and scales ``(B,)`` of objects resting on the ground plane ``z = ground_z (B,)``
+    whose image is a disc of ``area (B,)`` pixels centred on pixel ``uv (B, 2)``.
+
+    A ball of radius ``s`` at camera depth ``d`` covers about ``pi (f s / d)^2`` pixels, so
+    ``s = d sqrt(area / pi) / f``; its centre lies on the ray through ``uv`` at height ``ground_z + s``.
+    Scales are kept in ``scale_range``; a ray that never comes down to that height keeps the largest depth
+    on the ray it reaches (the centre is then put where the ray meets the height at the range's end)."""
+    lo, hi = scale_range
+    f = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
+    s = torch.full_like(area, 0.5 * (lo + hi))
+    for _ in range(PLACE_ITERATIONS):
+        x_cam = (ray_at_height(uv, K, T_world_cam, ground_z + s) - T_world_cam[:, :3, 3])
+        depth = torch.einsum("bi,bi->b", x_cam, T_world_cam[:, :3, 2])  # camera z: the camera's z axis in world
+        s = (depth * torch.sqrt(area / torch.pi) / f).clamp(lo, hi)
+    return ray_at_height(uv, K, T_world_cam, ground_z + s), s
+
+
+def category_medoids(prior) -> torch.Tensor:
+    """``(C, D_sh)``: per shape category of the prior, the training code nearest the category's mean."""
+    codes = prior.latents.detach()
+    cats = torch.as_tensor(prior.category_ids)
+    out = []
+    for c in torch.unique(cats):
+        sel = codes[cats == c]
+        out.append(sel[(sel - sel.mean(0)).norm(dim=1).argmin()])
+    return torch.stack(out)
+
+
+def _fit_texture(model, one: SceneParams, obj, target: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, D_tex)``: the texture latent of the single slot ``one`` fitted to ``target (B, 3, H, W)`` at
+    its hits inside ``region (B, H, W)`` bool (scenes without such hits keep theirs)."""
+    B, _, H, W = obj.depth.shape
+    pix = obj.hit_pix
+    b = obj.hit_slot  # K = 1: the slot index is the scene
+    inside = region.reshape(B, -1)[b, pix]
+    if not inside.any():
+        return one.z_tex
+    b, pix, x = b[inside], pix[inside], obj.hit_x_obj[inside]
+    want = target.permute(0, 2, 3, 1).reshape(B, H * W, 3)[b, pix]
+    z = one.z_tex[:, 0].detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([z], lr=TEXTURE_LR)
+    with torch.enable_grad():
+        for _ in range(TEXTURE_STEPS):
+            opt.zero_grad(set_to_none=True)
+            ((model.color_fn(z[b], x) - want) ** 2).sum(1).mean().backward()
+            opt.step()
+    return z.detach()[:, None]
+
+
+@torch.no_grad()
+def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), use_depth: bool = True) -> ModelOutput:
+    """``out`` (the model's output on ``batch``) with idle slots moved onto unexplained parts of the input,
+    ``cfg.rounds`` times (see the module docstring); every scene's ``fit_score`` is at most its start's."""
+    if cfg.rounds == 0:
+        return out
+    out = grow_slots(out, cfg.grow, model.cfg.far_depth)
+    depth_in = batch.depth if use_depth else None
+    target_depth = depth_in if cfg.w_depth > 0 else None
+    shapes = category_medoids(model.prior)
+    settings = model.render_settings()
+    H, W = batch.rgb.shape[-2:]
+    bg, bg_depth = out.latents.bg_color, out.bg_depth
+    ground_z = torch.as_tensor(batch.ground_z, dtype=batch.rgb.dtype).reshape(-1).expand(batch.rgb.shape[0])
+    p = out.latents.params
+    params = replace(p, z_sh=p.z_sh.clone(), z_tex=p.z_tex.clone(), position=p.position.clone(),
+                     cos_sin=p.cos_sin.clone(), scale=p.scale.clone(),
+                     active=None if p.active is None else p.active.clone())
+    obj_depth, obj_mask, obj_color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
+    B, N = params.scale.shape
+    rows = torch.arange(B)
+
+    def scored(d, m, c):
+        comp = composite(d, m, c, bg, bg_depth)
+        return fit_score(comp.image, comp.depth, batch.rgb, target_depth, cfg.w_image, cfg.w_depth), comp
+
+    best, comp = scored(obj_depth, obj_mask, obj_color)
+    tried = torch.zeros(B, H, W, dtype=torch.bool)  # components proposed in vain
+    for _ in range(cfg.rounds):
+        current = replace(out, latents=SceneLatents(params, bg), composite=comp, obj_depth=obj_depth,
+                          obj_mask=obj_mask, obj_color=obj_color)
+        keep = prune_keep(cfg.rule, current, batch.rgb, depth_in)
+        idle = ~keep
+        unexplained = opening(cfg.rule.unexplained(batch.rgb, depth_in, comp.image, torch.minimum(comp.depth, bg_depth),
+                                                   eroded=False), cfg.open) & ~tried
+        regions = largest_components(unexplained, cfg.min_area)
+        go = torch.tensor([r is not None for r in regions]) & idle.any(1)
+        if not go.any():
+            break
+        region = torch.from_numpy(np.stack([r if r is not None else np.zeros((H, W), bool) for r in regions]))
+        k = idle.float().argmax(1)  # the first idle slot of each scene
+        ys, xs = torch.meshgrid(torch.arange(H, dtype=batch.rgb.dtype), torch.arange(W, dtype=batch.rgb.dtype), indexing="ij")
+        area = region.flatten(1).sum(1).to(batch.rgb.dtype).clamp_min(1)
+        uv = torch.stack([(region * xs).flatten(1).sum(1), (region * ys).flatten(1).sum(1)], -1) / area[:, None]
+        _, placed = place_on_ground(uv, area, batch.K, batch.T_world_cam, ground_z, model.cfg.scale_range)
+        z_tex0 = params.z_tex[rows, k]
+        round_best, pick = best.clone(), None
+        lo, hi = model.cfg.scale_range
+        for z_sh, m in itertools.product(shapes, TRIAL_SCALES):
+            scale = (placed * m).clamp(lo, hi)
+            position = ray_at_height(uv, batch.K, batch.T_world_cam, ground_z + scale)
+            one = SceneParams(z_sh.expand(B, -1)[:, None].to(params.z_sh.dtype), z_tex0[:, None], position[:, None],
+                              torch.tensor([1.0, 0.0], dtype=params.cos_sin.dtype).expand(B, 1, 2).contiguous(),
+                              scale[:, None], None if params.axis is None else params.axis[rows, k][:, None],
+                              go[:, None])
+            geo = render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, settings)
+            one = replace(one, z_tex=_fit_texture(model, one, geo, batch.rgb, region))
+            obj = replace(geo, color=shade_objects(model.color_fn, one, geo))  # the same hits, coloured
+            d, m, c = obj_depth.clone(), obj_mask.clone(), obj_color.clone()
+            d[rows, k], m[rows, k], c[rows, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
+            score, _ = scored(d, m, c)
+            win = go & (score < round_best)
+            if win.any():
+                round_best = torch.where(win, score, round_best)
+                pick = (win, one, obj) if pick is None else (win | pick[0], _merge(win, one, pick[1]), _merge_obj(win, obj, pick[2]))
+        win = round_best < best
+        tried |= region & ~win.view(-1, 1, 1)
+        if pick is None:
+            continue
+        _, one, obj = pick
+        for name in ("z_sh", "z_tex", "position", "cos_sin"):
+            getattr(params, name)[rows[win], k[win]] = getattr(one, name)[win, 0]
+        params.scale[rows[win], k[win]] = one.scale[win, 0]
+        if params.active is not None:
+            params.active[rows[win], k[win]] = True
+        obj_depth[rows[win], k[win]] = obj.depth[win, 0]
+        obj_mask[rows[win], k[win]] = obj.mask[win, 0]
+        obj_color[rows[win], k[win]] = obj.color[win, 0]
+        best, comp = scored(obj_depth, obj_mask, obj_color)
+    return ModelOutput(SceneLatents(params, bg), comp, obj_depth, obj_mask, obj_color, bg_depth, None,
+                       slot_steps=out.slot_steps)
+
+
+def grow_slots(out: ModelOutput, extra: int, far_depth: float) -> ModelOutput:
+    """``out`` with ``extra`` empty slots appended to every scene: inactive, no pixels, at the smallest
+    scale ``out`` has; the composition is unchanged."""
+    if extra == 0:
+        return out
+    p = out.latents.params
+    B, N = p.scale.shape
+
+    def pad(t: torch.Tensor | None, fill: float = 0.0) -> torch.Tensor | None:
+        if t is None:
+            return None
+        return torch.cat([t, torch.full((B, extra, *t.shape[2:]), fill, dtype=t.dtype)], 1)
+
+    cos_sin = torch.cat([p.cos_sin, torch.tensor([1.0, 0.0], dtype=p.cos_sin.dtype).expand(B, extra, 2)], 1)
+    active = p.active if p.active is not None else torch.ones(B, N, dtype=torch.bool)
+    params = SceneParams(pad(p.z_sh), pad(p.z_tex), pad(p.position), cos_sin, pad(p.scale, float(p.scale.min())),
+                         pad(p.axis), torch.cat([active, torch.zeros(B, extra, dtype=torch.bool)], 1))
+    steps = torch.cat([out.encoder_steps(), torch.arange(N, N + extra).expand(B, extra)], 1)
+    return ModelOutput(SceneLatents(params, out.latents.bg_color), out.composite, pad(out.obj_depth, far_depth),
+                       pad(out.obj_mask, False), pad(out.obj_color), out.bg_depth, None, slot_steps=steps)
+
+
+def _merge(win: torch.Tensor, new: SceneParams, old: SceneParams) -> SceneParams:
+    """Per scene, ``new``'s single slot where ``win (B,)``, else ``old``'s."""
+    pick = lambda a, b: None if a is None else torch.where(win.view(-1, *([1] * (a.dim() - 1))), a, b)
+    return SceneParams(pick(new.z_sh, old.z_sh), pick(new.z_tex, old.z_tex), pick(new.position, old.position),
+                       pick(new.cos_sin, old.cos_sin), pick(new.scale, old.scale), pick(new.axis, old.axis),
+                       pick(new.active, old.active))
+
+
+def _merge_obj(win: torch.Tensor, new, old):
+    """Per scene, ``new``'s single-slot renders where ``win (B,)``, else ``old``'s (depth, mask, colour)."""
+    w = win.view(-1, 1, 1, 1)
+    return _Renders(torch.where(w, new.depth, old.depth), torch.where(w, new.mask, old.mask),
+                    torch.where(w[..., None], new.color, old.color))
+
+
+@dataclass
+class _Renders:
+    depth: torch.Tensor
+    mask: torch.Tensor
+    color: torch.Tensor
