@@ -37,6 +37,8 @@ def main() -> None:
     ap.add_argument("--search-grid", type=int, default=0)
     ap.add_argument("--fit-color", type=int, default=0)
     ap.add_argument("--color-only", action="store_true", help="the decoding and the rule read colour alone")
+    ap.add_argument("--color-tols", default="0.1,0.25", help="the grid's colour tolerances (comma-separated)")
+    ap.add_argument("--gains", default="1,5,10,25", help="the grid's least gains in pixels (comma-separated)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     model, _ = load_model(args.model)
@@ -44,8 +46,10 @@ def main() -> None:
     n = min(args.limit, len(ds))
     cfg = InferenceConfig.of(extra_slots=args.extra_slots, search=args.search, search_coarse=args.search_coarse,
                              search_grid=args.search_grid, fit_color=args.fit_color, use_depth=not args.color_only)
-    grid = [StopRule(color_tol=c, depth_tol=d, min_gain=g)
-            for c, d, g in itertools.product((0.1, 0.25), (0.05, 0.1, 0.25, 0.5), (1, 5, 10, 25))]
+    colors = [float(v) for v in args.color_tols.split(",")]
+    gains = [int(v) for v in args.gains.split(",")]
+    depths = (StopRule().depth_tol,) if args.color_only else (0.05, 0.1, 0.25, 0.5)  # colour alone: depth is never read
+    grid = [StopRule(color_tol=c, depth_tol=d, min_gain=g) for c, d, g in itertools.product(colors, depths, gains)]
     full_inst, gt_inst = [], []
     pruned_inst, kept = {r: [] for r in grid}, {r: [] for r in grid}
     for s in tqdm(range(0, n, args.batch), desc="decode"):
