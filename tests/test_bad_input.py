@@ -200,6 +200,7 @@ CASES = [
     ("tiny photo", ["real", "prepare", "{tiny}", "--out", "{tmp}/p"], "smaller than"),
     ("reseed negative", ["evaluate", "shipped", "{good}", "--split", "test", "--reseed", "-1"], "--reseed"),
     ("reseed cycles 0", ["evaluate", "shipped", "{good}", "--split", "test", "--reseed", "2", "--reseed-cycles", "0"], "--reseed-cycles"),
+    ("distill reseed grow", ["distill", "shipped", "{good}", "--split", "test", "--out", "{tmp}/d", "--reseed", "2", "--reseed-grow", "2"], "--reseed-grow"),
     ("refiner steps 0", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r", "--steps", "0"], "steps"),
     ("refiner from a refined model", ["refiner", "shipped", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r"], "already has a refiner"),
     ("refiner no targets", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r"], "no distillation targets"),

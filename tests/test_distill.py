@@ -125,6 +125,12 @@ def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
         fit_targets(model, ds, tmp_path / "u", 0, cfg, progress=False)
     with pytest.raises(DistillError, match="extra slots"):
         fit_targets(model, ds, tmp_path / "u", 3, replace(cfg, extra_slots=1), progress=False)
+    from prismonet.model.reseed import ReseedConfig
+
+    with pytest.raises(DistillError, match="other settings"):  # re-seeding is recorded with the targets
+        fit_targets(model, ds, tmp_path / "t", 3, replace(cfg, reseed=ReseedConfig(rounds=1)), progress=False)
+    with pytest.raises(DistillError, match="--reseed-grow"):
+        fit_targets(model, ds, tmp_path / "u", 3, replace(cfg, reseed=ReseedConfig(rounds=1, grow=1)), progress=False)
 
 
 def test_training_uses_the_targets(tmp_path, monkeypatch):

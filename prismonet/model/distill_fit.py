@@ -41,6 +41,8 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
 
     if cfg.extra_slots:
         raise DistillError("distillation targets keep encoder order (slot k is step k): extra slots cannot be used")
+    if cfg.reseed.grow:
+        raise DistillError("--reseed-grow cannot make distillation targets: the targets hold one row per slot of the model")
     if not 0 < count <= len(ds):
         raise DistillError(f"count must be in 1..{len(ds)} (the split's scenes), got {count}")
     out = Path(out_dir)
@@ -49,6 +51,8 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
             "color_fit": asdict(cfg.color_fit), **(meta or {})}
     if cfg.refine.steps:  # recorded only when used, so targets made before these settings existed still resume
         info["refine"] = asdict(cfg.refine)
+    if cfg.reseed.rounds:
+        info["reseed"] = asdict(cfg.reseed)
     if not cfg.use_depth:
         info["use_depth"] = False
     info_path = out / "targets.json"
