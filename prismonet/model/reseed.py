@@ -194,11 +194,13 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
 
     best, comp = scored(obj_depth, obj_mask, obj_color)
     tried = torch.zeros(B, H, W, dtype=torch.bool)  # components proposed in vain
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=batch.rgb.dtype), torch.arange(W, dtype=batch.rgb.dtype), indexing="ij")
+    lo, hi = model.cfg.scale_range
+    upright = torch.tensor([1.0, 0.0], dtype=params.cos_sin.dtype).expand(B, 1, 2).contiguous()
     for _ in range(cfg.rounds):
         current = replace(out, latents=SceneLatents(params, bg), composite=comp, obj_depth=obj_depth,
                           obj_mask=obj_mask, obj_color=obj_color)
-        keep = prune_keep(cfg.rule, current, batch.rgb, depth_in)
-        idle = ~keep
+        idle = ~prune_keep(cfg.rule, current, batch.rgb, depth_in)
         unexplained = opening(cfg.rule.unexplained(batch.rgb, depth_in, comp.image, torch.minimum(comp.depth, bg_depth),
                                                    eroded=False), cfg.open) & ~tried
         regions = largest_components(unexplained, cfg.min_area)
@@ -207,43 +209,41 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
             break
         region = torch.from_numpy(np.stack([r if r is not None else np.zeros((H, W), bool) for r in regions]))
         k = idle.float().argmax(1)  # the first idle slot of each scene
-        ys, xs = torch.meshgrid(torch.arange(H, dtype=batch.rgb.dtype), torch.arange(W, dtype=batch.rgb.dtype), indexing="ij")
         area = region.flatten(1).sum(1).to(batch.rgb.dtype).clamp_min(1)
         uv = torch.stack([(region * xs).flatten(1).sum(1), (region * ys).flatten(1).sum(1)], -1) / area[:, None]
         _, placed = place_on_ground(uv, area, batch.K, batch.T_world_cam, ground_z, model.cfg.scale_range)
-        z_tex0 = params.z_tex[rows, k]
-        round_best, pick = best.clone(), None
-        lo, hi = model.cfg.scale_range
-        for z_sh, m in itertools.product(shapes, TRIAL_SCALES):
-            scale = (placed * m).clamp(lo, hi)
+        # each scene's best trial for its slot k: latents and single-slot renders, kept where the score falls
+        pick = {name: getattr(params, name)[rows, k].clone() for name in ("z_sh", "z_tex", "position", "scale")}
+        pick_d, pick_m, pick_c = obj_depth[rows, k].clone(), obj_mask[rows, k].clone(), obj_color[rows, k].clone()
+        round_best = best.clone()
+        for z_sh, mult in itertools.product(shapes, TRIAL_SCALES):
+            scale = (placed * mult).clamp(lo, hi)
             position = ray_at_height(uv, batch.K, batch.T_world_cam, ground_z + scale)
-            one = SceneParams(z_sh.expand(B, -1)[:, None].to(params.z_sh.dtype), z_tex0[:, None], position[:, None],
-                              torch.tensor([1.0, 0.0], dtype=params.cos_sin.dtype).expand(B, 1, 2).contiguous(),
-                              scale[:, None], None if params.axis is None else params.axis[rows, k][:, None],
-                              go[:, None])
+            one = SceneParams(z_sh.expand(B, -1)[:, None].to(params.z_sh.dtype), params.z_tex[rows, k][:, None],
+                              position[:, None], upright, scale[:, None],
+                              None if params.axis is None else params.axis[rows, k][:, None], go[:, None])
             geo = render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, settings)
             one = replace(one, z_tex=_fit_texture(model, one, geo, batch.rgb, region))
-            obj = replace(geo, color=shade_objects(model.color_fn, one, geo))  # the same hits, coloured
+            color = shade_objects(model.color_fn, one, geo)  # the same hits, coloured
             d, m, c = obj_depth.clone(), obj_mask.clone(), obj_color.clone()
-            d[rows, k], m[rows, k], c[rows, k] = obj.depth[:, 0], obj.mask[:, 0], obj.color[:, 0]
+            d[rows, k], m[rows, k], c[rows, k] = geo.depth[:, 0], geo.mask[:, 0], color[:, 0]
             score, _ = scored(d, m, c)
             win = go & (score < round_best)
-            if win.any():
-                round_best = torch.where(win, score, round_best)
-                pick = (win, one, obj) if pick is None else (win | pick[0], _merge(win, one, pick[1]), _merge_obj(win, obj, pick[2]))
+            round_best = torch.where(win, score, round_best)
+            for name, t in pick.items():
+                t[win] = getattr(one, name)[win, 0]
+            pick_d[win], pick_m[win], pick_c[win] = geo.depth[win, 0], geo.mask[win, 0], color[win, 0]
         win = round_best < best
         tried |= region & ~win.view(-1, 1, 1)
-        if pick is None:
+        if not win.any():
             continue
-        _, one, obj = pick
-        for name in ("z_sh", "z_tex", "position", "cos_sin"):
-            getattr(params, name)[rows[win], k[win]] = getattr(one, name)[win, 0]
-        params.scale[rows[win], k[win]] = one.scale[win, 0]
+        at = (rows[win], k[win])
+        for name, t in pick.items():
+            getattr(params, name)[at] = t[win]
+        params.cos_sin[at] = upright[win, 0]
         if params.active is not None:
-            params.active[rows[win], k[win]] = True
-        obj_depth[rows[win], k[win]] = obj.depth[win, 0]
-        obj_mask[rows[win], k[win]] = obj.mask[win, 0]
-        obj_color[rows[win], k[win]] = obj.color[win, 0]
+            params.active[at] = True
+        obj_depth[at], obj_mask[at], obj_color[at] = pick_d[win], pick_m[win], pick_c[win]
         best, comp = scored(obj_depth, obj_mask, obj_color)
     return ModelOutput(SceneLatents(params, bg), comp, obj_depth, obj_mask, obj_color, bg_depth, None,
                        slot_steps=out.slot_steps)
@@ -269,25 +269,3 @@ def grow_slots(out: ModelOutput, extra: int, far_depth: float) -> ModelOutput:
     steps = torch.cat([out.encoder_steps(), torch.arange(N, N + extra).expand(B, extra)], 1)
     return ModelOutput(SceneLatents(params, out.latents.bg_color), out.composite, pad(out.obj_depth, far_depth),
                        pad(out.obj_mask, False), pad(out.obj_color), out.bg_depth, None, slot_steps=steps)
-
-
-def _merge(win: torch.Tensor, new: SceneParams, old: SceneParams) -> SceneParams:
-    """Per scene, ``new``'s single slot where ``win (B,)``, else ``old``'s."""
-    pick = lambda a, b: None if a is None else torch.where(win.view(-1, *([1] * (a.dim() - 1))), a, b)
-    return SceneParams(pick(new.z_sh, old.z_sh), pick(new.z_tex, old.z_tex), pick(new.position, old.position),
-                       pick(new.cos_sin, old.cos_sin), pick(new.scale, old.scale), pick(new.axis, old.axis),
-                       pick(new.active, old.active))
-
-
-def _merge_obj(win: torch.Tensor, new, old):
-    """Per scene, ``new``'s single-slot renders where ``win (B,)``, else ``old``'s (depth, mask, colour)."""
-    w = win.view(-1, 1, 1, 1)
-    return _Renders(torch.where(w, new.depth, old.depth), torch.where(w, new.mask, old.mask),
-                    torch.where(w[..., None], new.color, old.color))
-
-
-@dataclass
-class _Renders:
-    depth: torch.Tensor
-    mask: torch.Tensor
-    color: torch.Tensor
