@@ -17,6 +17,9 @@ MEASURED = {  # the 16 shipped scenes: feed-forward AP0.5, depth RMSE; AP0.5 wit
     # shipped as clevr1to8 in session 39: clevr1to8_30k plus 16K steps of configs/clevr1to8_seek16k.json
     "clevr1to8_seek16k": {"AP0.5": 0.756, "depth_RMSE": 0.161, "pruned": 0.781, "frame": "world", "stage": "train"},
     "clevr1to8_30k": {"AP0.5": 0.750, "depth_RMSE": 0.149, "pruned": 0.860, "frame": "world", "stage": "train"},
+    # session 45: anchored slots (model.anchor), clevr1to8 plus 8K steps of configs/clevr1to8_anchor.json, then 8K of _r2
+    "clevr1to8_anchor": {"AP0.5": 0.885, "depth_RMSE": 0.123, "pruned": 0.885, "frame": "world", "stage": "train"},
+    "clevr1to8_anchor8k": {"AP0.5": 0.873, "depth_RMSE": 0.131, "pruned": 0.878, "frame": "world", "stage": "train"},
     "tabletop": {"AP0.5": 0.563, "depth_RMSE": 0.228, "pruned": 0.725, "frame": "camera", "stage": "train"},
 }
 

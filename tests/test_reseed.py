@@ -13,7 +13,8 @@ from prismonet.geometry.camera import intrinsics_matrix, look_at, project
 from prismonet.model.fit_score import fit_score
 from prismonet.model.inference import InferenceConfig, infer
 from prismonet.model.io import load_model
-from prismonet.model.reseed import ReseedConfig, largest_components, opening, place_on_ground, ray_at_height, reseed
+from prismonet.model.reseed import ReseedConfig, place_on_ground, ray_at_height, reseed
+from prismonet.model.unexplained import largest_components, opening
 from prismonet.model.stopping import keep_slots
 
 

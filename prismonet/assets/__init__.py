@@ -47,6 +47,8 @@ MODELS = {
     "clevr1to8": "clevr1to8_model",
     "clevr1to8_seek16k": "clevr1to8_seek16k_model",
     "clevr1to8_30k": "clevr1to8_30k_model",
+    "clevr1to8_anchor": "clevr1to8_anchor_model",
+    "clevr1to8_anchor8k": "clevr1to8_anchor8k_model",
     "tabletop": "tabletop_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
@@ -78,6 +80,8 @@ MODEL_SAMPLES = {
     "clevr1to8": "samples/clevr1to8",
     "clevr1to8_seek16k": "samples/clevr1to8",
     "clevr1to8_30k": "samples/clevr1to8",
+    "clevr1to8_anchor": "samples/clevr1to8",
+    "clevr1to8_anchor8k": "samples/clevr1to8",
     "tabletop": "samples/tabletop",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""

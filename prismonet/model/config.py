@@ -67,6 +67,15 @@ class ModelConfig:
     refiner_channels: tuple[int, ...] = (32, 32, 64, 64)
     """Conv blocks of the refiner (as ``channels``)."""
     refiner_fc: tuple[int, ...] = (256, 256)
+    anchor: bool = False
+    """Anchored slots (beyond the paper; ``prismonet.model.unexplained``): each encoder step is pointed at the
+    deepest pixel of the largest part of the image that the slots so far leave unexplained in colour, sees that
+    part as one more input channel, and regresses its centre's pixel relative to that anchor; a scene with no
+    such part left stops. For scenes of many objects, whose later steps otherwise hide their slots."""
+    anchor_color_tol: float = 0.25
+    """With ``anchor``: the largest per-channel colour difference of an explained pixel."""
+    anchor_min_area: int = 20
+    """With ``anchor``: the fewest pixels of an unexplained part worth a slot."""
 
     def __post_init__(self) -> None:
         if self.pose_frame not in ("world", "camera"):
@@ -79,6 +88,10 @@ class ModelConfig:
 
         if self.num_slots > MAX_SLOTS or self.image_size > MAX_IMAGE_SIDE:
             raise ValueError(f"num_slots must be at most {MAX_SLOTS} and image_size at most {MAX_IMAGE_SIDE}, got {self.num_slots}, {self.image_size}")
+        if self.anchor and self.presence:
+            raise ValueError("anchor and presence are two ways of leaving slots empty: choose one")
+        if self.anchor_min_area < 1 or not self.anchor_color_tol > 0:
+            raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):
             raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
         if self.refine_passes and self.image_size % (2 ** len(self.refiner_channels)) != 0:
@@ -91,4 +104,4 @@ class ModelConfig:
 
     @property
     def in_channels(self) -> int:
-        return {"I": 3, "I+dI": 6, "I+M": 4, "I+dI+M": 7}[self.inputs]
+        return {"I": 3, "I+dI": 6, "I+M": 4, "I+dI+M": 7}[self.inputs] + (1 if self.anchor else 0)

@@ -197,6 +197,16 @@ def widen_weights(model, source) -> list[str]:
     return grown
 
 
+def anchor_start(model) -> None:
+    """Zero the object encoder's position rows of an anchored ``model`` started from an unanchored one: there they
+    held world positions, here they are offsets from the anchor, so every slot starts at its anchor."""
+    r = _head_rows(model)["pose"]
+    rows = list(r)[:3]
+    with torch.no_grad():
+        model.state_dict()[f"{HEAD}.weight"][rows] = 0.0
+        model.state_dict()[f"{HEAD}.bias"][rows] = 0.0
+
+
 def training_camera(model, info: dict):
     """``(Camera, ground_z)`` the model was trained with: from the checkpoint's record, or for a
     checkpoint without one, the default CLEVR camera at the model's image size."""

@@ -119,12 +119,16 @@ def blur(x: torch.Tensor, cfg: LossConfig, step: int) -> torch.Tensor:
 
 
 def ground_loss(model, params, ground_z: torch.Tensor) -> torch.Tensor:
-    """``(B,)``: objects above the ground, and no shape reaching below it under its centre."""
+    """``(B,)``: objects above the ground, and no shape reaching below it under its centre (inactive slots,
+    which are not objects, are not charged)."""
     height = params.position[..., 2] - ground_z[:, None]
     foot = params.position.clone()
     foot[..., 2] = ground_z[:, None].expand_as(foot[..., 2])
     phi = model.sdf_world(params, foot[:, :, None, :])[..., 0]  # (B, K)
-    return (torch.relu(-height) + torch.relu(-phi)).sum(1)
+    per_slot = torch.relu(-height) + torch.relu(-phi)
+    if params.active is not None:
+        per_slot = per_slot * params.active.to(per_slot.dtype)
+    return per_slot.sum(1)
 
 
 def intersection_loss(model, params, points: int) -> torch.Tensor:

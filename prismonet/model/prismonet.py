@@ -19,6 +19,7 @@ from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate
 from prismonet.model.refiner import SlotRefiner, apply_correction, slot_latents, slot_views
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
+from prismonet.model.unexplained import AnchorRule, find_anchors
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
 from prismonet.render.background import plane_depth
 from prismonet.render.composite import Composite, presence_composite
@@ -99,10 +100,17 @@ class PriSMONet(nn.Module):
         return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps,
                               far_depth=self.cfg.far_depth, soft_mask_tau=self.cfg.soft_mask_tau, box=self.prior.bounds)
 
+    def anchor_rule(self) -> AnchorRule:
+        return AnchorRule(color_tol=self.cfg.anchor_color_tol, min_area=self.cfg.anchor_min_area)
+
     def decode_latent(self, raw: torch.Tensor, K: torch.Tensor | None = None, T_world_cam: torch.Tensor | None = None,
-                      ground_z: torch.Tensor | None = None) -> SceneParams:
+                      ground_z: torch.Tensor | None = None, anchor_uv: torch.Tensor | None = None) -> SceneParams:
         """Split a raw encoder output ``(B, out_dim)`` into one slot's ``SceneParams`` (K = 1). A model with
-        ``pose_frame = "camera"`` needs the cameras and ground heights (``prismonet.model.pose_frame``)."""
+        ``pose_frame = "camera"`` needs the cameras and ground heights (``prismonet.model.pose_frame``).
+
+        ``anchor_uv (B, 2)`` (an anchored model, ``cfg.anchor``): the position outputs are the centre's pixel
+        relative to that pixel, ``anchor + (S / 2) (a, b)``, and its height above the ground, as in the
+        camera frame; the yaw stays in the model's ``pose_frame``."""
         d_sh, d_tex = self.sh_dim, self.cfg.tex_dim
         z_sh, z_tex, pos, cs, s = torch.split(raw[:, : d_sh + d_tex + 6], [d_sh, d_tex, 3, 2, 1], dim=1)
         lo, hi = self.cfg.scale_range
@@ -111,16 +119,20 @@ class PriSMONet(nn.Module):
         cs = cs + torch.tensor([1.0, 0.0], dtype=cs.dtype)
         if axis is not None:
             axis = axis + torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype)
-        if self.cfg.pose_frame == "camera":
+        if self.cfg.pose_frame == "camera" or anchor_uv is not None:  # the centre's pixel and its height
             if K is None or T_world_cam is None or ground_z is None:
-                raise ValueError("a camera-frame model decodes poses with the cameras and ground heights")
+                raise ValueError("a camera-frame or anchored model decodes poses with the cameras and ground heights")
+            ab = pos[:, :2]
+            if anchor_uv is not None:
+                ab = ab + (anchor_uv - K[:, :2, 2]) / (self.cfg.image_size / 2.0)
             height = self.pos_offset[2] + self.pos_scale[2] * pos[:, 2]
-            position = centre_from_pixel(pos[:, :2], height, K, T_world_cam, ground_z, self.cfg.image_size, 2 * self.cfg.far_depth)
+            position = centre_from_pixel(ab, height, K, T_world_cam, ground_z, self.cfg.image_size, 2 * self.cfg.far_depth)
+        else:
+            position = self.pos_offset + self.pos_scale * pos
+        if self.cfg.pose_frame == "camera":
             heading = camera_heading(T_world_cam)
             cs = rotate_about_z(cs, heading)
             axis = None if axis is None else rotate_about_z(axis[:, 0], heading)[:, None]
-        else:
-            position = self.pos_offset + self.pos_scale * pos
         return SceneParams(
             z_sh=z_sh[:, None], z_tex=z_tex[:, None],
             position=position[:, None],
@@ -131,9 +143,13 @@ class PriSMONet(nn.Module):
         """``(B,)`` the presence probability in a raw encoder output, or ``None`` without ``cfg.presence``."""
         return torch.sigmoid(raw[:, -1]) if self.cfg.presence else None
 
-    def encoder_input(self, image: torch.Tensor, partial_image: torch.Tensor, partial_mask: torch.Tensor) -> torch.Tensor:
+    def encoder_input(self, image: torch.Tensor, partial_image: torch.Tensor, partial_mask: torch.Tensor,
+                      region: torch.Tensor | None = None) -> torch.Tensor:
+        """The encoder's input channels; an anchored model also sees its anchor's region ``(B, H, W)`` bool."""
         parts = {"I": [image], "I+dI": [image, image - partial_image], "I+M": [image, partial_mask],
                  "I+dI+M": [image, image - partial_image, partial_mask]}[self.cfg.inputs]
+        if region is not None:
+            parts = [*parts, region[:, None].to(image.dtype)]
         return torch.cat(parts, dim=1)
 
     def sdf_world(self, params: SceneParams, x_world: torch.Tensor) -> torch.Tensor:
@@ -161,6 +177,11 @@ class PriSMONet(nn.Module):
         With ``cfg.refine_passes`` the refiner then corrects every slot that many times (``refine``
         ``False``: the encoder's slots, unrefined).
 
+        An anchored model (``cfg.anchor``, ``prismonet.model.unexplained``) points each step at the deepest pixel
+        of the largest part of the image that the slots so far leave unexplained in colour, and sees that part;
+        a part that the step's slot fails to explain is not proposed again; a scene with no part left stops
+        there, in training as at inference.
+
         With ``cfg.presence``: in training every slot is rendered and the composite is
         ``presence_composite``; otherwise a slot whose presence is below 0.5 is dropped (inactive), and
         with ``stop`` a scene stops at its first absent slot instead of by ``stop``'s pixel rule."""
@@ -181,18 +202,23 @@ class PriSMONet(nn.Module):
         gate = self.cfg.presence and not self.training  # drop absent slots, stop at them with ``stop``
         pixel_stop = stop is not None and not gate
         live = before = None
-        if stop is not None or gate:
+        if stop is not None or gate or self.cfg.anchor:
             live = torch.ones(B, dtype=torch.bool)
         if pixel_stop:
             before = stop.count(cur_image, torch.minimum(cur_depth, bg_depth))
+        failed = torch.zeros(B, H, W, dtype=torch.bool) if self.cfg.anchor else None  # components proposed in vain
         for _ in range(N):
             if pixel_stop:
                 live = live & ~stop.explained(before)
+            anchors = None
+            if self.cfg.anchor:
+                anchors = find_anchors(image, cur_image.detach(), self.anchor_rule(), failed)
+                live = live & anchors.found
             if live is not None and not live.any():
                 break
             pi, pm = (cur_image.detach(), cur_mask.detach()) if self.cfg.detach_partials else (cur_image, cur_mask)
-            raw = self.encoder(self.encoder_input(image, pi, pm))
-            params = self.decode_latent(raw, K, T_world_cam, ground_z)
+            raw = self.encoder(self.encoder_input(image, pi, pm, None if anchors is None else anchors.region))
+            params = self.decode_latent(raw, K, T_world_cam, ground_z, None if anchors is None else anchors.uv)
             p = self.presence_of(raw)
             if gate:  # an absent slot is inactive (it casts no ray); with ``stop`` its scene stops there
                 present = live & (p >= 0.5)
@@ -218,6 +244,8 @@ class PriSMONet(nn.Module):
             cur_image = torch.where(win, c, cur_image)
             cur_depth = torch.where(win, d, cur_depth)
             cur_mask = torch.maximum(cur_mask, m_seen.to(image.dtype))
+            if anchors is not None:
+                failed |= self.anchor_rule().failed(anchors, image, cur_image.detach())
             slots.append(params)
             depths.append(d[:, 0])
             masks.append(m[:, 0])

@@ -30,15 +30,14 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.model.prune import prune_keep
-from prismonet.model.stopping import StopRule, erode
+from prismonet.model.stopping import StopRule
+from prismonet.model.unexplained import largest_components, opening
 from prismonet.render import SceneParams, composite, render_objects
 from prismonet.render.renderer import shade_objects
 
@@ -79,30 +78,6 @@ class ReseedConfig:
             raise ValueError(f"reseed: the cycles (--reseed-cycles) must be >= 1, got {self.cycles}")
         if self.min_area < 1 or self.open < 0:
             raise ValueError(f"reseed: min_area must be >= 1 and open >= 0, got {self.min_area} and {self.open}")
-
-
-def opening(mask: torch.Tensor, pixels: int) -> torch.Tensor:
-    """``(B, H, W)`` bool ``mask`` opened by a ``(2 pixels + 1)``-square: eroded, then dilated, within ``mask``."""
-    if pixels == 0:
-        return mask
-    k = 2 * pixels + 1
-    grown = F.max_pool2d(erode(mask, pixels)[:, None].float(), k, stride=1, padding=pixels)[:, 0] > 0.5
-    return grown & mask
-
-
-def largest_components(mask: torch.Tensor, min_area: int) -> list[np.ndarray | None]:
-    """Per scene of ``mask (B, H, W)`` bool, the boolean ``(H, W)`` mask of its largest 8-connected
-    component with at least ``min_area`` pixels, or ``None``."""
-    found: list[np.ndarray | None] = []
-    for m in mask.numpy().astype(np.uint8):
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
-        if n <= 1:
-            found.append(None)
-            continue
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        best = int(areas.argmax())
-        found.append(labels == best + 1 if areas[best] >= min_area else None)
-    return found
 
 
 def ray_at_height(uv: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, height: torch.Tensor) -> torch.Tensor:

@@ -294,6 +294,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
                 print(f"init_from {cfg.init_from}: fresh where it does not fit: {', '.join(fresh)}")
         else:
             load_fitting(model, source.state_dict(), f"init_from {cfg.init_from}")
+        if cfg.model.anchor and not source.cfg.anchor:
+            from prismonet.model.io import anchor_start
+
+            anchor_start(model)
+            if rank == 0:
+                print(f"init_from {cfg.init_from}: an unanchored model; position outputs zeroed (every slot starts at its anchor)")
     targets = None
     if cfg.distill is not None and cfg.loss.w_distill > 0:
         from prismonet.model.distill import DistillTargets

@@ -1,0 +1,120 @@
+"""The parts of the input that no slot explains yet, and where the next slot should look.
+
+Two users: re-seeding at test time (``prismonet.model.reseed``) and the anchored encoder
+(``ModelConfig.anchor``), whose every step is pointed at the largest unexplained part of the image.
+
+- ``opening``: a morphological opening of a pixel mask, which removes the one-pixel seams that a fitted
+  outline leaves and keeps a small object's blob whole.
+- ``largest_components``: per scene, the largest 8-connected component of a mask (OpenCV).
+- ``find_anchors``: per scene, the pixel deepest inside the largest component of what the composition
+  leaves unexplained in colour (the centre of the largest disc that fits in it), and the component itself.
+  Colour alone, like the encoder: a photo has no depth. The deepest pixel, not the centroid, because two
+  touching objects make one component whose centroid can fall between them on the ground, while the
+  deepest pixel lies inside the larger of the two.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from prismonet.model.stopping import erode
+
+
+def opening(mask: torch.Tensor, pixels: int) -> torch.Tensor:
+    """``(B, H, W)`` bool ``mask`` opened by a ``(2 pixels + 1)``-square: eroded, then dilated, within ``mask``."""
+    if pixels == 0:
+        return mask
+    k = 2 * pixels + 1
+    grown = F.max_pool2d(erode(mask, pixels)[:, None].float(), k, stride=1, padding=pixels)[:, 0] > 0.5
+    return grown & mask
+
+
+def largest_components(mask: torch.Tensor, min_area: int) -> list[np.ndarray | None]:
+    """Per scene of ``mask (B, H, W)`` bool, the boolean ``(H, W)`` mask of its largest 8-connected
+    component with at least ``min_area`` pixels, or ``None``."""
+    found: list[np.ndarray | None] = []
+    for m in mask.numpy().astype(np.uint8):
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+        if n <= 1:
+            found.append(None)
+            continue
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        best = int(areas.argmax())
+        found.append(labels == best + 1 if areas[best] >= min_area else None)
+    return found
+
+
+@dataclass(frozen=True)
+class AnchorRule:
+    """What counts as unexplained, and how large a part must be to be worth a slot."""
+
+    color_tol: float = 0.25
+    """Largest per-channel colour difference (in [0, 1]) between the input and the composition of an
+    explained pixel (the stop rule's)."""
+    open: int = 1
+    """Radius in pixels of the opening applied to the unexplained pixels."""
+    min_area: int = 20
+    """Least pixels of a component (after the opening) worth a slot."""
+    min_gain: int = 10
+    """A slot that leaves all but fewer than this many pixels of its anchor's component unexplained has failed
+    there: the component is not proposed again (``failed``), so that the next step looks elsewhere."""
+
+    def __post_init__(self) -> None:
+        if not self.color_tol > 0 or self.open < 0 or self.min_area < 1 or self.min_gain < 1:
+            raise ValueError(f"anchor rule: color_tol must be > 0, open >= 0, min_area >= 1 and min_gain >= 1, "
+                             f"got {self.color_tol}, {self.open}, {self.min_area} and {self.min_gain}")
+
+    def unexplained(self, image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
+        """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses."""
+        return (comp_image - image).abs().amax(1) > self.color_tol
+
+    def failed(self, anchors: "Anchors", image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
+        """``(B, H, W)`` bool: the components of ``anchors`` that the composition with the new slot,
+        ``comp_image``, still leaves unexplained but for fewer than ``min_gain`` pixels."""
+        gained = (anchors.region & ~self.unexplained(image, comp_image)).sum((1, 2))
+        return anchors.region & (gained < self.min_gain)[:, None, None]
+
+
+@dataclass
+class Anchors:
+    """Per scene: ``uv (B, 2)`` the anchor pixel (OpenCV convention: pixel centres at integers),
+    ``region (B, H, W)`` bool the component it lies in, ``found (B,)`` bool (false: nothing left to
+    explain; ``uv`` is then the image centre and ``region`` empty)."""
+
+    uv: torch.Tensor
+    region: torch.Tensor
+    found: torch.Tensor
+
+
+def deepest_pixel(region: np.ndarray) -> tuple[float, float]:
+    """``(u, v)`` of the pixel farthest from the outside of ``region (H, W)`` bool (Euclidean distance
+    transform; the image border does not count as outside); several at the same distance: their mean."""
+    dist = cv2.distanceTransform(region.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    ys, xs = np.nonzero(dist >= dist.max() - 1e-6)
+    return float(xs.mean()), float(ys.mean())
+
+
+@torch.no_grad()
+def find_anchors(image: torch.Tensor, comp_image: torch.Tensor, rule: AnchorRule = AnchorRule(),
+                 exclude: torch.Tensor | None = None) -> Anchors:
+    """The anchors of ``image (B, 3, H, W)`` given the composition so far ``comp_image (B, 3, H, W)``
+    (see the module docstring), away from the pixels ``exclude (B, H, W)`` bool (components proposed in vain)."""
+    B, _, H, W = image.shape
+    bad = opening(rule.unexplained(image, comp_image), rule.open)
+    if exclude is not None:
+        bad = bad & ~exclude
+    uv = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=image.dtype).repeat(B, 1)
+    region = torch.zeros(B, H, W, dtype=torch.bool)
+    found = torch.zeros(B, dtype=torch.bool)
+    for b, comp in enumerate(largest_components(bad, rule.min_area)):
+        if comp is None:
+            continue
+        uv[b] = torch.tensor(deepest_pixel(comp), dtype=image.dtype)
+        region[b] = torch.from_numpy(comp)
+        found[b] = True
+    return Anchors(uv, region, found)
