@@ -73,6 +73,7 @@ def test_shipped_model_files_travel_with_config_and_log():
     ("clevr1to8_30k_model", "clevr1to8_30k_train_config.json", "clevr1to8_30k_train_log.jsonl", "clevr1to8.json"),  # the seek one's start
     ("clevr1to8_anchor_model", "clevr1to8_anchor_train_config.json", "clevr1to8_anchor_train_log.jsonl", "clevr1to8_anchor_r2.json"),  # anchored
     ("clevr1to8_anchor8k_model", "clevr1to8_anchor8k_train_config.json", "clevr1to8_anchor8k_train_log.jsonl", "clevr1to8_anchor.json"),  # its start
+    ("tabletop_anchor_model", "tabletop_anchor_train_config.json", "tabletop_anchor_train_log.jsonl", "tabletop_anchor.json"),  # anchored tabletop
     ("cars_model", "cars_train_config.json", "cars_train_log.jsonl", "cars_seek_distill_fc.json"),  # cars
     ("cars_seek_model", "cars_seek_train_config.json", "cars_seek_train_log.jsonl", "cars_seek.json"),  # its start
     ("cars_distill_model", "cars_distill_train_config.json", "cars_distill_train_log.jsonl", "cars_distill.json"),  # the seek one's start

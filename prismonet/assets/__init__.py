@@ -50,6 +50,7 @@ MODELS = {
     "clevr1to8_anchor": "clevr1to8_anchor_model",
     "clevr1to8_anchor8k": "clevr1to8_anchor8k_model",
     "tabletop": "tabletop_model",
+    "tabletop_anchor": "tabletop_anchor_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -83,6 +84,7 @@ MODEL_SAMPLES = {
     "clevr1to8_anchor": "samples/clevr1to8",
     "clevr1to8_anchor8k": "samples/clevr1to8",
     "tabletop": "samples/tabletop",
+    "tabletop_anchor": "samples/tabletop",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 
