@@ -35,6 +35,8 @@ def main() -> None:
     ap.add_argument("--search", type=int, default=0)
     ap.add_argument("--search-coarse", type=int, default=0)
     ap.add_argument("--search-grid", type=int, default=0)
+    ap.add_argument("--search-scales", default=None, help="the search's trial scales (comma-separated; default: the search's)")
+    ap.add_argument("--search-shapes", type=int, default=0)
     ap.add_argument("--fit-color", type=int, default=0)
     ap.add_argument("--color-only", action="store_true", help="the decoding and the rule read colour alone")
     ap.add_argument("--color-tols", default="0.1,0.25", help="the grid's colour tolerances (comma-separated)")
@@ -45,7 +47,9 @@ def main() -> None:
     ds = SceneDataset(args.data, split=args.split)
     n = min(args.limit, len(ds))
     cfg = InferenceConfig.of(extra_slots=args.extra_slots, search=args.search, search_coarse=args.search_coarse,
-                             search_grid=args.search_grid, fit_color=args.fit_color, use_depth=not args.color_only)
+                             search_grid=args.search_grid, fit_color=args.fit_color, use_depth=not args.color_only,
+                             search_scales=None if args.search_scales is None else [float(v) for v in args.search_scales.split(",")],
+                             search_shapes=args.search_shapes)
     colors = [float(v) for v in args.color_tols.split(",")]
     gains = [int(v) for v in args.gains.split(",")]
     depths = (StopRule().depth_tol,) if args.color_only else (0.05, 0.1, 0.25, 0.5)  # colour alone: depth is never read
