@@ -206,13 +206,14 @@ class PriSMONet(nn.Module):
             live = torch.ones(B, dtype=torch.bool)
         if pixel_stop:
             before = stop.count(cur_image, torch.minimum(cur_depth, bg_depth))
+        rule = self.anchor_rule() if self.cfg.anchor else None
         failed = torch.zeros(B, H, W, dtype=torch.bool) if self.cfg.anchor else None  # components proposed in vain
         for _ in range(N):
             if pixel_stop:
                 live = live & ~stop.explained(before)
             anchors = None
             if self.cfg.anchor:
-                anchors = find_anchors(image, cur_image.detach(), self.anchor_rule(), failed)
+                anchors = find_anchors(image, cur_image.detach(), rule, failed)
                 live = live & anchors.found
             if live is not None and not live.any():
                 break
@@ -245,7 +246,7 @@ class PriSMONet(nn.Module):
             cur_depth = torch.where(win, d, cur_depth)
             cur_mask = torch.maximum(cur_mask, m_seen.to(image.dtype))
             if anchors is not None:
-                failed |= self.anchor_rule().failed(anchors, image, cur_image.detach())
+                failed |= rule.failed(anchors, image, cur_image.detach())
             slots.append(params)
             depths.append(d[:, 0])
             masks.append(m[:, 0])

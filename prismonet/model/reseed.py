@@ -30,14 +30,13 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, replace
 
-import numpy as np
 import torch
 
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.model.prune import prune_keep
 from prismonet.model.stopping import StopRule
-from prismonet.model.unexplained import largest_components, opening
+from prismonet.model.unexplained import largest_region
 from prismonet.render import SceneParams, composite, render_objects
 from prismonet.render.renderer import shade_objects
 
@@ -176,13 +175,11 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
         current = replace(out, latents=SceneLatents(params, bg), composite=comp, obj_depth=obj_depth,
                           obj_mask=obj_mask, obj_color=obj_color)
         idle = ~prune_keep(cfg.rule, current, batch.rgb, depth_in)
-        unexplained = opening(cfg.rule.unexplained(batch.rgb, depth_in, comp.image, torch.minimum(comp.depth, bg_depth),
-                                                   eroded=False), cfg.open) & ~tried
-        regions = largest_components(unexplained, cfg.min_area)
-        go = torch.tensor([r is not None for r in regions]) & idle.any(1)
+        unexplained = cfg.rule.unexplained(batch.rgb, depth_in, comp.image, torch.minimum(comp.depth, bg_depth), eroded=False)
+        region, found = largest_region(unexplained, cfg.open, cfg.min_area, exclude=tried)
+        go = found & idle.any(1)
         if not go.any():
             break
-        region = torch.from_numpy(np.stack([r if r is not None else np.zeros((H, W), bool) for r in regions]))
         k = idle.float().argmax(1)  # the first idle slot of each scene
         area = region.flatten(1).sum(1).to(batch.rgb.dtype).clamp_min(1)
         uv = torch.stack([(region * xs).flatten(1).sum(1), (region * ys).flatten(1).sum(1)], -1) / area[:, None]

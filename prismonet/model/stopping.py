@@ -37,6 +37,12 @@ def erode(mask: torch.Tensor, pixels: int) -> torch.Tensor:
     return -F.max_pool2d(-mask[:, None].float(), k, stride=1, padding=pixels)[:, 0] > 0.5
 
 
+def color_unexplained(image: torch.Tensor, comp_image: torch.Tensor, tol: float) -> torch.Tensor:
+    """``(B, H, W)`` bool: the pixels of ``image (B, 3, H, W)`` whose colour ``comp_image`` misses by more than
+    ``tol`` in some channel."""
+    return (comp_image - image).abs().amax(1) > tol
+
+
 @dataclass(frozen=True)
 class StopRule:
     """When the encoder stops (see the module docstring)."""
@@ -63,7 +69,7 @@ class StopRule:
                     comp_depth: torch.Tensor, eroded: bool = True) -> torch.Tensor:
         """``(B, H, W)`` bool: the pixels the composition does not explain (after erosion, unless
         ``eroded`` is false). Input depth 0 means unknown and is ignored there."""
-        bad = (comp_image - image).abs().amax(1) > self.color_tol
+        bad = color_unexplained(image, comp_image, self.color_tol)
         if depth is not None:
             known = depth[:, 0] > 0
             bad = bad | (known & ((comp_depth[:, 0] - depth[:, 0]).abs() > self.depth_tol))

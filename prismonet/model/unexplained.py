@@ -6,6 +6,8 @@ Two users: re-seeding at test time (``prismonet.model.reseed``) and the anchored
 - ``opening``: a morphological opening of a pixel mask, which removes the one-pixel seams that a fitted
   outline leaves and keeps a small object's blob whole.
 - ``largest_components``: per scene, the largest 8-connected component of a mask (OpenCV).
+- ``largest_region``: both together on a mask of unexplained pixels, away from parts proposed in vain: what
+  re-seeding and the anchors propose.
 - ``find_anchors``: per scene, the pixel deepest inside the largest component of what the composition
   leaves unexplained in colour (the centre of the largest disc that fits in it), and the component itself.
   Colour alone, like the encoder: a photo has no depth. The deepest pixel, not the centroid, because two
@@ -22,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from prismonet.model.stopping import erode
+from prismonet.model.stopping import color_unexplained, erode
 
 
 def opening(mask: torch.Tensor, pixels: int) -> torch.Tensor:
@@ -49,6 +51,22 @@ def largest_components(mask: torch.Tensor, min_area: int) -> list[np.ndarray | N
     return found
 
 
+def largest_region(unexplained: torch.Tensor, open_pixels: int, min_area: int,
+                   exclude: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(region (B, H, W) bool, found (B,) bool)``: per scene, the largest component of at least ``min_area``
+    pixels of ``unexplained (B, H, W)`` bool once opened by ``open_pixels`` and cleared of ``exclude``
+    (empty where there is none)."""
+    mask = opening(unexplained, open_pixels)
+    if exclude is not None:
+        mask = mask & ~exclude
+    region = torch.zeros_like(mask)
+    found = torch.zeros(mask.shape[0], dtype=torch.bool)
+    for b, comp in enumerate(largest_components(mask, min_area)):
+        if comp is not None:
+            region[b], found[b] = torch.from_numpy(comp), True
+    return region, found
+
+
 @dataclass(frozen=True)
 class AnchorRule:
     """What counts as unexplained, and how large a part must be to be worth a slot."""
@@ -71,7 +89,7 @@ class AnchorRule:
 
     def unexplained(self, image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
         """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses."""
-        return (comp_image - image).abs().amax(1) > self.color_tol
+        return color_unexplained(image, comp_image, self.color_tol)
 
     def failed(self, anchors: "Anchors", image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
         """``(B, H, W)`` bool: the components of ``anchors`` that the composition with the new slot,
@@ -105,16 +123,8 @@ def find_anchors(image: torch.Tensor, comp_image: torch.Tensor, rule: AnchorRule
     """The anchors of ``image (B, 3, H, W)`` given the composition so far ``comp_image (B, 3, H, W)``
     (see the module docstring), away from the pixels ``exclude (B, H, W)`` bool (components proposed in vain)."""
     B, _, H, W = image.shape
-    bad = opening(rule.unexplained(image, comp_image), rule.open)
-    if exclude is not None:
-        bad = bad & ~exclude
+    region, found = largest_region(rule.unexplained(image, comp_image), rule.open, rule.min_area, exclude)
     uv = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=image.dtype).repeat(B, 1)
-    region = torch.zeros(B, H, W, dtype=torch.bool)
-    found = torch.zeros(B, dtype=torch.bool)
-    for b, comp in enumerate(largest_components(bad, rule.min_area)):
-        if comp is None:
-            continue
-        uv[b] = torch.tensor(deepest_pixel(comp), dtype=image.dtype)
-        region[b] = torch.from_numpy(comp)
-        found[b] = True
+    for b in torch.nonzero(found).flatten().tolist():
+        uv[b] = torch.tensor(deepest_pixel(region[b].numpy()), dtype=image.dtype)
     return Anchors(uv, region, found)
