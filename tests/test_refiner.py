@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, apply_correction, slot_latents,
-                                     slot_views)
+from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, apply_correction, centre_pixels, glimpse,
+                                     slot_latents, slot_views, with_coords)
 from prismonet.render import SceneParams
 
 
@@ -70,6 +70,60 @@ def test_slot_views_and_latents():
     assert lat.shape == (2, 8 + 7 + 6)
     assert lat[1, 15:18].tolist() == pytest.approx([1 / 1.5, -1 / 1.5, 0.0], abs=1e-6)
     assert float(lat[1, 20]) == pytest.approx(math.log(0.4))
+
+
+def test_glimpse_and_coords_hand_computed():
+    """A whole-image glimpse centred on the image is the image; a half-size glimpse samples every second
+    half pixel around its centre; position channels run from -1 + 1/W to 1 - 1/W at pixel centres."""
+    g = torch.Generator().manual_seed(2)
+    v = torch.rand(2, 4, 8, 8, generator=g)
+    same, uv = glimpse(v, torch.tensor([[3.5, 3.5], [3.5, 3.5]]), 1.0)
+    assert torch.allclose(same, v, atol=1e-6) and uv[0, 0, 0].tolist() == [0.0, 0.0]
+    half, uv = glimpse(v, torch.tensor([[4.0, 3.0], [2.0, 2.0]]), 0.5)
+    assert uv[0, 3, 3].tolist() == pytest.approx([3.75, 2.75]) and uv[0, 4, 4].tolist() == pytest.approx([4.25, 3.25])
+    # view pixel (4, 4) of scene 0 falls a quarter pixel right of and below image pixel (4, 3): bilinear weights 9/16, 3/16, 3/16, 1/16
+    want = (9 * v[0, :, 3, 4] + 3 * v[0, :, 3, 5] + 3 * v[0, :, 4, 4] + v[0, :, 4, 5]) / 16
+    assert torch.allclose(half[0, :, 4, 4], want, atol=1e-6)
+    far, _ = glimpse(v, torch.tensor([[100.0, 100.0], [-50.0, 3.0]]), 0.5)
+    assert float(far.abs().max()) == 0.0  # outside the image: zeros
+    c = with_coords(v)
+    assert c.shape == (2, 6, 8, 8) and torch.equal(c[:, :4], v)
+    assert c[0, 4, 0].tolist() == pytest.approx([(2 * u + 1) / 8 - 1 for u in range(8)])
+    assert c[1, 5, :, 2].tolist() == pytest.approx([(2 * r + 1) / 8 - 1 for r in range(8)])
+
+
+def test_centre_pixels_is_the_projection():
+    """A centre on the optical axis projects to the principal point; one a unit to the side at depth 4
+    lands fx / 4 pixels off it (camera at the world origin looking along +z)."""
+    K = torch.tensor([[[40.0, 0.0, 31.5], [0.0, 40.0, 31.5], [0.0, 0.0, 1.0]]])
+    T = torch.eye(4)[None]
+    uv = centre_pixels(torch.tensor([[[0.0, 0.0, 4.0], [1.0, -2.0, 4.0]]]), K, T)
+    assert uv[0].flatten().tolist() == pytest.approx([31.5, 31.5, 41.5, 11.5])
+
+
+@pytest.mark.parametrize("fields", [{"refiner_coords": True}, {"refiner_glimpse": 0.5, "refiner_coords": True}])
+def test_fresh_refiner_with_coords_or_glimpse_is_the_identity(shipped, fields):
+    from dataclasses import replace
+
+    from prismonet.model.prismonet import PriSMONet
+
+    model, b, _ = shipped
+    new = PriSMONet(replace(model.cfg, refine_passes=1, **fields), prior=model.prior)
+    own = {k: v for k, v in new.state_dict().items() if k.startswith("refiner.")}
+    new.load_state_dict({**{k: v for k, v in model.state_dict().items() if not k.startswith("refiner.")}, **own})
+    new.eval()
+    with torch.no_grad():
+        r = new(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        plain = new(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+    assert torch.allclose(r.latents.params.position, plain.latents.params.position, atol=1e-6)
+    assert new.refiner.trunk[0].in_channels == IN_CHANNELS + 2
+
+
+def test_refiner_glimpse_out_of_range():
+    from prismonet.model.config import ModelConfig
+
+    with pytest.raises(ValueError, match="refiner_glimpse"):
+        ModelConfig(refiner_glimpse=1.5)
 
 
 def test_fresh_refiner_is_the_identity(shipped):
@@ -155,7 +209,7 @@ def test_refiner_corrects_the_chosen_and_the_kept_slots(shipped):
     from prismonet.model.stopping import StopRule
 
     model, b, _ = shipped
-    assert model.cfg.refine_passes == 1  # the shipped model has a refiner
+    assert model.cfg.refine_passes >= 1  # the shipped model has a refiner
     with torch.no_grad():
         chosen = decode_overcomplete(model, b, extra=1)
         four = model(b.rgb, b.K, b.T_world_cam, b.ground_z, num_slots=4, refine=False)
@@ -170,3 +224,19 @@ def test_refiner_corrects_the_chosen_and_the_kept_slots(shipped):
     assert not stopped.obj_mask[~active].any()
     assert torch.equal(stopped.latents.params.position[~active], plain.latents.params.position[~active])
     assert not torch.equal(stopped.latents.params.position[active], plain.latents.params.position[active])
+
+
+def test_with_refiner_settings(shipped):
+    """Refiner settings carry into the copy (a refiner it had is replaced by a fresh one); other settings may not change."""
+    from prismonet.model.refiner_fit import with_refiner
+
+    model = shipped[0]
+    g = with_refiner(model, refiner_glimpse=0.5, refiner_coords=True)
+    assert g.cfg.refiner_glimpse == 0.5 and g.cfg.refiner_coords and g.cfg.refine_passes == 1
+    again = with_refiner(g)
+    assert again.cfg.refiner_glimpse == 0.5 and float(again.refiner.head[-1].weight.detach().abs().max()) == 0.0
+    for k, v in model.state_dict().items():
+        if not k.startswith("refiner."):
+            assert torch.equal(g.state_dict()[k], v)
+    with pytest.raises(ValueError, match="only refiner settings"):
+        with_refiner(model, num_slots=4)

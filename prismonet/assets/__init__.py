@@ -8,9 +8,14 @@ from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
 """Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-25, session
-43: the far-clipped distilled model below with a learnt refinement pass, ``model.refine_passes`` 1: the refiner
-fitted to that model's own search targets with the encoder frozen (``prismonet refiner``), then 4K steps of both
-together, ``configs/clevr3_refiner.json``)."""
+46: the far-clipped distilled model below with a learnt refinement pass that looks at each slot through a glimpse
+around it, ``model.refiner_glimpse`` 0.375 with position channels, fitted to that model's own search targets with
+the encoder frozen (``prismonet refiner --glimpse 0.375 --coords``), then 4K steps of both together,
+``configs/clevr3_glimpse.json``; applied twice, ``refine_passes`` 2, chosen on validation)."""
+REFINER_MODEL = "clevr3_refiner_model"
+"""The model shipped in sessions 43-45: the far-clipped distilled model with a whole-image refiner, one pass
+(``configs/clevr3_refiner.json``; its config and logs are ``clevr3_refiner_config.json``, ``clevr3_refiner_log.jsonl``
+and ``clevr3_refiner_fit_log.jsonl``). What ``configs/clevr3_anchor.json`` starts from."""
 FC_MODEL = "clevr3_fc_model"
 """The far-clipped distilled model (shipped on 2026-11-25 before session 43; the far-clip + seek model below plus
 4K steps of far clip + seek + self-distillation from its own far-clipped search targets,
@@ -29,6 +34,7 @@ SHIPPED_SAMPLES = "samples/clevr3"
 
 MODELS = {
     "clevr3": SHIPPED_MODEL,
+    "clevr3_refiner": REFINER_MODEL,
     "clevr3_fc": FC_MODEL,
     "clevr3_60k": PREVIOUS_MODEL,
     "clevr3_seek": SEEK_MODEL,

@@ -63,7 +63,7 @@ def cmd_refiner(args) -> int:
     meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
     if meta and meta.get("model_digest") != weights_digest(base):
         raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {args.checkpoint}'s")
-    model = with_refiner(base)
+    model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords)
     s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
     print(json.dumps(s))
     print(f"run folder: {args.out}  (model.safetensors + model.json with the refiner, checkpoint.safetensors, log.jsonl)")
@@ -101,5 +101,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--holdout", type=int, default=256, help="the last N scenes with targets, held out (logged)")
     r.add_argument("--texture", type=float, default=0.1, help="weight of the texture-latent term")
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--glimpse", type=float, default=0.0,
+                   help="the refiner sees each slot through a window of this fraction of the image side around its "
+                        "centre, zoomed to the image size (0: the whole image; 0.5 is the measured setting)")
+    r.add_argument("--coords", action="store_true", help="the refiner also sees each pixel's image position")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])

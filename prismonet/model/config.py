@@ -67,6 +67,11 @@ class ModelConfig:
     refiner_channels: tuple[int, ...] = (32, 32, 64, 64)
     """Conv blocks of the refiner (as ``channels``)."""
     refiner_fc: tuple[int, ...] = (256, 256)
+    refiner_coords: bool = False
+    """The refiner also sees each pixel's image position (two more input channels)."""
+    refiner_glimpse: float = 0.0
+    """> 0: the refiner sees each slot through a window of this fraction of the image side centred on the
+    slot's projected centre, resampled to the image size (a zoom of 1 / ``refiner_glimpse``); 0: the whole image."""
     anchor: bool = False
     """Anchored slots (beyond the paper; ``prismonet.model.unexplained``): each encoder step is pointed at the
     deepest pixel of the largest part of the image that the slots so far leave unexplained in colour, sees that
@@ -94,6 +99,8 @@ class ModelConfig:
             raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):
             raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
+        if not 0.0 <= self.refiner_glimpse <= 1.0:
+            raise ValueError(f"refiner_glimpse must be in [0, 1], got {self.refiner_glimpse}")
         if self.refine_passes and self.image_size % (2 ** len(self.refiner_channels)) != 0:
             raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.refiner_channels)} (refiner_channels)")
         lo, hi = self.scale_range

@@ -16,7 +16,7 @@ from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
-from prismonet.model.refiner import SlotRefiner, apply_correction, slot_latents, slot_views
+from prismonet.model.refiner import SlotRefiner, apply_correction, refiner_inputs
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.model.unexplained import AnchorRule, find_anchors
@@ -84,7 +84,8 @@ class PriSMONet(nn.Module):
         self.bg_encoder = ConvEncoder(3, cfg.bg_channels, (64,), cfg.image_size, 3)
         self.texture = TextureField(cfg.tex_dim, cfg.texture_width, cfg.texture_depth)
         if cfg.refine_passes:
-            self.refiner = SlotRefiner(self.sh_dim, cfg.tex_dim, cfg.image_size, cfg.refiner_channels, cfg.refiner_fc)
+            self.refiner = SlotRefiner(self.sh_dim, cfg.tex_dim, cfg.image_size, cfg.refiner_channels, cfg.refiner_fc,
+                                       cfg.refiner_coords)
         self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
         self.register_buffer("pos_scale", torch.tensor(cfg.position_scale), persistent=False)
 
@@ -284,14 +285,21 @@ class PriSMONet(nn.Module):
         H, W = image.shape[-2:]
         for _ in range(self.cfg.refine_passes):
             params = out.latents.params
-            views = slot_views(image, out.composite.image, out.composite.instance, out.obj_mask)
-            delta = self.refiner(views, slot_latents(params, self.pos_offset, self.pos_scale))
+            views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
+                                                 K, T_world_cam)
+            delta = self.refiner(views, latents)
             new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range)
             obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
             comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
             out = ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                               obj.soft_mask, out.presence, out.slot_steps)
         return out
+
+    def refiner_inputs(self, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
+                       params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The refiner's views and latents of every slot, as its config asks (``refiner.refiner_inputs``)."""
+        return refiner_inputs(image, comp_image, instance, obj_mask, params, self.pos_offset, self.pos_scale, K,
+                              T_world_cam, self.cfg.refiner_coords, self.cfg.refiner_glimpse)
 
     def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""

@@ -16,13 +16,18 @@ with hundreds of trial renders.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from prismonet.geometry.camera import project
+from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.encoder import conv_trunk
 from prismonet.render import SceneParams
 
 IN_CHANNELS = 8
 """Image (3), image minus the composition (3), the slot's visible silhouette (1) and its full silhouette (1)."""
+COORD_CHANNELS = 2
+"""With ``coords``: each view pixel's image position ``(u, v)``, scaled to [-1, 1] over the image."""
 MAX_TURN = 0.6
 """The largest yaw correction in radians (about 34 degrees): ``tanh`` bounds it."""
 MAX_LOG_SCALE = 0.4
@@ -33,10 +38,10 @@ class SlotRefiner(nn.Module):
     """``(R, 8, H, W)`` slot views and ``(R, P)`` slot latents -> ``(R, 5 + D_tex)`` corrections."""
 
     def __init__(self, sh_dim: int, tex_dim: int, image_size: int, channels: tuple[int, ...] = (32, 32, 64, 64),
-                 fc: tuple[int, ...] = (256, 256)) -> None:
+                 fc: tuple[int, ...] = (256, 256), coords: bool = False) -> None:
         super().__init__()
         self.tex_dim = tex_dim
-        self.trunk = conv_trunk(IN_CHANNELS, channels)
+        self.trunk = conv_trunk(IN_CHANNELS + (COORD_CHANNELS if coords else 0), channels)
         side = image_size // 2 ** len(channels)
         self.vec_dim = sh_dim + tex_dim + 3 + 2 + 1
         dims = [channels[-1] * side * side + self.vec_dim, *fc]
@@ -62,6 +67,54 @@ def slot_views(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Te
     per_scene = torch.cat([image, image - comp_image], 1)[:, None].expand(B, N, 6, H, W)
     views = torch.cat([per_scene, visible[:, :, None], obj_mask[:, :, None].to(image.dtype)], 2)
     return views.reshape(B * N, IN_CHANNELS, H, W)
+
+
+def with_coords(views: torch.Tensor, uv: torch.Tensor | None = None) -> torch.Tensor:
+    """``views (R, C, H, W)`` with two more channels: each pixel's image position scaled to [-1, 1] (OpenCV pixel
+    centres; ``-1`` and ``1`` are the outer edges). ``uv (R, H, W, 2)``: the views' own pixel positions when they
+    are glimpses (``glimpse``), else the image's grid."""
+    R, _, H, W = views.shape
+    if uv is None:
+        v, u = torch.meshgrid(torch.arange(H, dtype=views.dtype), torch.arange(W, dtype=views.dtype), indexing="ij")
+        uv = torch.stack([u, v], -1).expand(R, H, W, 2)
+    scale = torch.tensor([W, H], dtype=views.dtype)
+    xy = (2 * uv + 1) / scale - 1
+    return torch.cat([views, xy.permute(0, 3, 1, 2)], 1)
+
+
+def centre_pixels(position: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> torch.Tensor:
+    """``(B, N, 2)`` pixels where the slots' centres ``position (B, N, 3)`` (world) project; a centre behind
+    the camera is taken as just in front of it."""
+    x_cam = transform_points(invert_similarity(T_world_cam), position)
+    x_cam = torch.cat([x_cam[..., :2], x_cam[..., 2:].clamp_min(1e-3)], -1)
+    return project(x_cam, K)
+
+
+def glimpse(views: torch.Tensor, centre_uv: torch.Tensor, frac: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``views (R, C, H, W)`` resampled (bilinear, zeros outside) in a square window of ``frac`` times the image
+    side centred on ``centre_uv (R, 2)``, at the same ``H x W``: a zoom of ``1 / frac`` onto each slot. Also
+    returns the ``(R, H, W, 2)`` image pixel each view pixel samples."""
+    R, _, H, W = views.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=views.dtype), torch.arange(W, dtype=views.dtype), indexing="ij")
+    local = torch.stack([u - (W - 1) / 2, v - (H - 1) / 2], -1)  # view pixels from the view's centre
+    uv = centre_uv[:, None, None, :] + frac * local[None]  # (R, H, W, 2) image pixels
+    size = torch.tensor([W, H], dtype=views.dtype)
+    grid = (2 * uv + 1) / size - 1  # align_corners=False: -1 / 1 are the image's outer edges
+    return F.grid_sample(views, grid, mode="bilinear", padding_mode="zeros", align_corners=False), uv
+
+
+def refiner_inputs(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
+                   params: SceneParams, pos_offset: torch.Tensor, pos_scale: torch.Tensor, K: torch.Tensor,
+                   T_world_cam: torch.Tensor, coords: bool = False, glimpse_frac: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The refiner's two inputs per slot: ``slot_views`` (glimpsed around the slot's projected centre when
+    ``glimpse_frac`` > 0, with position channels when ``coords``) and ``slot_latents``."""
+    views = slot_views(image, comp_image, instance, obj_mask)
+    uv = None
+    if glimpse_frac > 0:
+        views, uv = glimpse(views, centre_pixels(params.position, K, T_world_cam).reshape(-1, 2), glimpse_frac)
+    if coords:
+        views = with_coords(views, uv)
+    return views, slot_latents(params, pos_offset, pos_scale)
 
 
 def slot_latents(params: SceneParams, pos_offset: torch.Tensor, pos_scale: torch.Tensor) -> torch.Tensor:

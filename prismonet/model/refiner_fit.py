@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from prismonet.model.distill import DistillError, DistillTargets, DistillWeights, distill_loss
-from prismonet.model.refiner import apply_correction, slot_latents, slot_views
+from prismonet.model.refiner import apply_correction
 
 
 @dataclass(frozen=True)
@@ -53,14 +53,19 @@ class RefinerFitConfig:
             raise ValueError(f"refiner fit: weight_decay and texture must be >= 0, got {self.weight_decay}, {self.texture}")
 
 
-def with_refiner(model, passes: int = 1):
+def with_refiner(model, passes: int = 1, **fields):
     """A copy of a trained scene model with a fresh (identity) refiner of ``passes`` passes; the
-    encoder, background encoder and texture field keep their weights."""
+    encoder, background encoder and texture field keep their weights. ``fields``: other ``ModelConfig``
+    refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``); a
+    refiner the model already has is replaced."""
     from prismonet.model.prismonet import PriSMONet
 
-    new = PriSMONet(replace(model.cfg, refine_passes=passes), prior=model.prior)
+    bad = [k for k in fields if not k.startswith("refiner_")]
+    if bad:
+        raise ValueError(f"with_refiner: only refiner settings may change, got {bad}")
+    new = PriSMONet(replace(model.cfg, refine_passes=passes, **fields), prior=model.prior)
     own = {k: v for k, v in new.state_dict().items() if k.startswith("refiner.")}
-    new.load_state_dict({**model.state_dict(), **own})
+    new.load_state_dict({**{k: v for k, v in model.state_dict().items() if not k.startswith("refiner.")}, **own})
     return new
 
 
@@ -84,13 +89,18 @@ def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = 
     return {k: torch.cat(v) for k, v in rows.items()}
 
 
+def refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[torch.Tensor, torch.Tensor]:
+    """The refiner's inputs for the cached decodings of scenes ``idx`` of ``ds`` (their latents ``params``)."""
+    b = ds.batch(idx.tolist())
+    return model.refiner_inputs(b.rgb, cache["comp"][idx].float(), cache["instance"][idx].long(), cache["obj_mask"][idx],
+                                params, b.K, b.T_world_cam)
+
+
 def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
     from prismonet.render import SceneParams
 
-    b = ds.batch(idx.tolist())
-    views = slot_views(b.rgb, cache["comp"][idx].float(), cache["instance"][idx].long(), cache["obj_mask"][idx])
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
-    delta = model.refiner(views, slot_latents(params, model.pos_offset, model.pos_scale))
+    delta = model.refiner(*refiner_inputs(model, cache, ds, idx, params))
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
     t, have = targets.lookup(idx)
     return distill_loss(new, t["bg_color"], t, have, weights)
@@ -124,6 +134,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
     record = {"fit": {k: v for k, v in asdict(cfg).items() if k != "steps"}, "targets": str(targets_dir), "target_scenes": count}
+    if model.cfg.refiner_glimpse or model.cfg.refiner_coords:  # recorded when not the default, so older runs still resume
+        record["refiner"] = {"glimpse": model.cfg.refiner_glimpse, "coords": model.cfg.refiner_coords}
     ckpt = out / "checkpoint.safetensors"
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
