@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from prismonet.cli.common import add_inference_args, inference_config
 from prismonet.data.dataset import SceneDataset
 from prismonet.model.inference import InferenceConfig, infer
 from prismonet.model.io import load_model
@@ -36,14 +37,10 @@ def outline_band(instance: torch.Tensor, band: int) -> torch.Tensor:
 
 
 def decoding_config(flags: str) -> InferenceConfig:
-    """``evaluate``-style flags (a subset) to an ``InferenceConfig``."""
-    ap = argparse.ArgumentParser()
-    for name in ("extra-slots", "search", "search-coarse", "search-grid", "fit-color", "refine"):
-        ap.add_argument(f"--{name}", type=int, default=0)
-    ap.add_argument("--prune", action="store_true")
-    a = ap.parse_args(shlex.split(flags))
-    return InferenceConfig.of(extra_slots=a.extra_slots, search=a.search, search_coarse=a.search_coarse,
-                              search_grid=a.search_grid, fit_color=a.fit_color, refine=a.refine, prune=a.prune)
+    """``evaluate``'s test-time flags (``prismonet.cli.common.add_inference_args``) to an ``InferenceConfig``."""
+    ap = argparse.ArgumentParser(prog="--decodings")
+    add_inference_args(ap)
+    return inference_config(ap.parse_args(shlex.split(flags)))
 
 
 def psnr(se_sum: np.ndarray, pixels: int) -> float:

@@ -204,6 +204,8 @@ CASES = [
     ("refiner steps 0", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r", "--steps", "0"], "steps"),
     ("refiner from a refined model", ["refiner", "shipped", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r"], "already has a refiner"),
     ("refiner no targets", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r"], "no distillation targets"),
+    ("refiner glimpse out of range", ["refiner", "clevr3_fc", "{good}", "--split", "test", "--targets", "{tmp}", "--out", "{tmp}/r",
+                                      "--glimpse", "1.5"], "refiner_glimpse must be in"),
     ("box with ground pose", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_ok}", "--box", "0,0,64,64"], "--box"),
     ("label for a missing photo", ["real", "evaluate", "{labels_missing_photo}", "--out", "{tmp}/e"], "labels a photo that is not there"),
     ("labels folder missing", ["real", "evaluate", "{tmp}/nolabels", "--out", "{tmp}/e"], "no such folder of photo labels"),

@@ -240,3 +240,26 @@ def test_with_refiner_settings(shipped):
             assert torch.equal(g.state_dict()[k], v)
     with pytest.raises(ValueError, match="only refiner settings"):
         with_refiner(model, num_slots=4)
+
+
+def test_fit_refiner_on_a_shared_encoder_cache(shipped, tmp_path):
+    """A refiner fitted on a precomputed encoder cache learns exactly as one that computes it; a cache that
+    holds fewer scenes than the targets is refused."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import DistillError
+    from prismonet.model.refiner_fit import RefinerFitConfig, encoder_cache, fit_refiner, with_refiner
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    cfg = RefinerFitConfig(steps=10, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=10)
+    torch.manual_seed(0)
+    a = fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "a", cfg, progress=False)
+    cache = encoder_cache(with_refiner(model), ds, 12, progress=False)
+    torch.manual_seed(0)
+    b = fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "b", cfg, progress=False, cache=cache)
+    assert b["held_out_end"] == pytest.approx(a["held_out_end"], rel=1e-5)
+    short = {k: v[:8] for k, v in cache.items()}
+    with pytest.raises(DistillError, match="cache holds 8 scenes"):
+        fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "c", cfg, progress=False, cache=short)

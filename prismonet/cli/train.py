@@ -55,6 +55,7 @@ def cmd_refiner(args) -> int:
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
+    model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords)  # checks the refiner settings
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
     from prismonet.model.distill_fit import weights_digest
@@ -63,7 +64,6 @@ def cmd_refiner(args) -> int:
     meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
     if meta and meta.get("model_digest") != weights_digest(base):
         raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {args.checkpoint}'s")
-    model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords)
     s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
     print(json.dumps(s))
     print(f"run folder: {args.out}  (model.safetensors + model.json with the refiner, checkpoint.safetensors, log.jsonl)")

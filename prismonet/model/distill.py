@@ -98,25 +98,36 @@ class DistillTargets:
         return {k: v[safe] for k, v in self.t.items()}, have.float()
 
 
+def distill_terms(params, targets: dict[str, torch.Tensor], w: DistillWeights = DistillWeights()) -> dict[str, torch.Tensor]:
+    """The weighted slot terms of ``distill_loss``, each ``(B, K)``: position, scale, rotation, texture, and shape
+    when the targets have shape latents."""
+    cs = params.cos_sin / params.cos_sin.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    ct = targets["cos_sin"] / targets["cos_sin"].norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    terms = {
+        "position": w.position * (params.position - targets["position"]).abs().sum(-1),
+        "scale": w.scale * (params.scale - targets["scale"]).abs(),
+        "rotation": w.rotation * (1 - (cs * ct).sum(-1)),
+        "texture": w.texture * ((params.z_tex - targets["z_tex"]) ** 2).sum(-1),
+    }
+    if SHAPE in targets:
+        terms["shape"] = w.shape * ((params.z_sh - targets[SHAPE]) ** 2).sum(-1)
+    return terms
+
+
+def seen_slots(targets: dict[str, torch.Tensor], like: torch.Tensor) -> torch.Tensor:
+    """``(B, K)`` float: 1 for the slots that are targets (those the fit shows, with ``targets["visible"]``; else all)."""
+    if VISIBLE in targets:
+        return (targets[VISIBLE] >= MIN_VISIBLE).to(like.dtype)
+    return torch.ones_like(like)
+
+
 def distill_loss(params, bg_color: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
                  w: DistillWeights = DistillWeights()) -> torch.Tensor:
     """``()``: the weighted regression of the decoded slots onto their targets, mean over the scenes
     that have targets (``mask``); 0 when none has. With ``targets["visible"]``, each scene's slot terms
     are the mean over its slots that the fit shows (``MIN_VISIBLE`` pixels or more), 0 if it shows none."""
-    cs = params.cos_sin / params.cos_sin.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    ct = targets["cos_sin"] / targets["cos_sin"].norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    per_slot = (
-        w.position * (params.position - targets["position"]).abs().sum(-1)
-        + w.scale * (params.scale - targets["scale"]).abs()
-        + w.rotation * (1 - (cs * ct).sum(-1))
-        + w.texture * ((params.z_tex - targets["z_tex"]) ** 2).sum(-1)
-    )  # (B, K)
-    if SHAPE in targets:
-        per_slot = per_slot + w.shape * ((params.z_sh - targets[SHAPE]) ** 2).sum(-1)
-    if VISIBLE in targets:
-        seen = (targets[VISIBLE] >= MIN_VISIBLE).to(per_slot.dtype)
-        slots = (per_slot * seen).sum(1) / seen.sum(1).clamp_min(1.0)
-    else:
-        slots = per_slot.mean(1)
+    per_slot = sum(distill_terms(params, targets, w).values())  # (B, K)
+    seen = seen_slots(targets, per_slot)
+    slots = (per_slot * seen).sum(1) / seen.sum(1).clamp_min(1.0)
     per_scene = slots + w.background * (bg_color - targets["bg_color"]).abs().sum(-1)
     return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from prismonet.geometry.camera import project
+from prismonet.geometry.camera import pixel_grid, project
 from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.encoder import conv_trunk
 from prismonet.render import SceneParams
@@ -69,17 +69,19 @@ def slot_views(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Te
     return views.reshape(B * N, IN_CHANNELS, H, W)
 
 
+def unit_coords(uv: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Pixel positions ``uv (..., 2)`` scaled to [-1, 1] over a ``height x width`` image (OpenCV pixel centres;
+    ``-1`` and ``1`` are the outer edges, as ``grid_sample`` with ``align_corners=False`` reads them)."""
+    return (2 * uv + 1) / torch.tensor([width, height], dtype=uv.dtype) - 1
+
+
 def with_coords(views: torch.Tensor, uv: torch.Tensor | None = None) -> torch.Tensor:
-    """``views (R, C, H, W)`` with two more channels: each pixel's image position scaled to [-1, 1] (OpenCV pixel
-    centres; ``-1`` and ``1`` are the outer edges). ``uv (R, H, W, 2)``: the views' own pixel positions when they
-    are glimpses (``glimpse``), else the image's grid."""
+    """``views (R, C, H, W)`` with two more channels: each pixel's image position (``unit_coords``). ``uv (R, H, W, 2)``:
+    the views' own pixel positions when they are glimpses (``glimpse``), else the image's grid."""
     R, _, H, W = views.shape
     if uv is None:
-        v, u = torch.meshgrid(torch.arange(H, dtype=views.dtype), torch.arange(W, dtype=views.dtype), indexing="ij")
-        uv = torch.stack([u, v], -1).expand(R, H, W, 2)
-    scale = torch.tensor([W, H], dtype=views.dtype)
-    xy = (2 * uv + 1) / scale - 1
-    return torch.cat([views, xy.permute(0, 3, 1, 2)], 1)
+        uv = pixel_grid(H, W, dtype=views.dtype).expand(R, H, W, 2)
+    return torch.cat([views, unit_coords(uv, H, W).permute(0, 3, 1, 2)], 1)
 
 
 def centre_pixels(position: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> torch.Tensor:
@@ -95,12 +97,9 @@ def glimpse(views: torch.Tensor, centre_uv: torch.Tensor, frac: float) -> tuple[
     side centred on ``centre_uv (R, 2)``, at the same ``H x W``: a zoom of ``1 / frac`` onto each slot. Also
     returns the ``(R, H, W, 2)`` image pixel each view pixel samples."""
     R, _, H, W = views.shape
-    v, u = torch.meshgrid(torch.arange(H, dtype=views.dtype), torch.arange(W, dtype=views.dtype), indexing="ij")
-    local = torch.stack([u - (W - 1) / 2, v - (H - 1) / 2], -1)  # view pixels from the view's centre
+    local = pixel_grid(H, W, dtype=views.dtype) - torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=views.dtype)
     uv = centre_uv[:, None, None, :] + frac * local[None]  # (R, H, W, 2) image pixels
-    size = torch.tensor([W, H], dtype=views.dtype)
-    grid = (2 * uv + 1) / size - 1  # align_corners=False: -1 / 1 are the image's outer edges
-    return F.grid_sample(views, grid, mode="bilinear", padding_mode="zeros", align_corners=False), uv
+    return F.grid_sample(views, unit_coords(uv, H, W), mode="bilinear", padding_mode="zeros", align_corners=False), uv
 
 
 def refiner_inputs(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,

@@ -89,7 +89,7 @@ def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = 
     return {k: torch.cat(v) for k, v in rows.items()}
 
 
-def refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[torch.Tensor, torch.Tensor]:
+def cached_refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[torch.Tensor, torch.Tensor]:
     """The refiner's inputs for the cached decodings of scenes ``idx`` of ``ds`` (their latents ``params``)."""
     b = ds.batch(idx.tolist())
     return model.refiner_inputs(b.rgb, cache["comp"][idx].float(), cache["instance"][idx].long(), cache["obj_mask"][idx],
@@ -100,7 +100,7 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     from prismonet.render import SceneParams
 
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
-    delta = model.refiner(*refiner_inputs(model, cache, ds, idx, params))
+    delta = model.refiner(*cached_refiner_inputs(model, cache, ds, idx, params))
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
     t, have = targets.lookup(idx)
     return distill_loss(new, t["bg_color"], t, have, weights)
@@ -114,11 +114,22 @@ def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch:
     return float(sum(l * n for l, n in parts) / max(1, sum(n for _, n in parts)))
 
 
+def refiner_record(model) -> dict:
+    """The model's refiner settings that differ from ``ModelConfig``'s defaults (empty for the session-43 design)."""
+    from prismonet.model.config import ModelConfig
+
+    default = ModelConfig()
+    names = ("refiner_glimpse", "refiner_coords", "refiner_channels", "refiner_fc")
+    return {n.removeprefix("refiner_"): getattr(model.cfg, n) for n in names if getattr(model.cfg, n) != getattr(default, n)}
+
+
 def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: RefinerFitConfig = RefinerFitConfig(),
-                info: dict | None = None, progress: bool = True) -> dict:
+                info: dict | None = None, progress: bool = True, cache: dict[str, torch.Tensor] | None = None) -> dict:
     """Train ``model``'s refiner (``model.cfg.refine_passes`` >= 1; see ``with_refiner``) on the targets in
     ``targets_dir`` for the scenes of ``ds`` (the split they were made on), then save the whole model in
-    ``out_dir``. ``info``: the base model's record (its training config is kept). Returns a summary."""
+    ``out_dir``. ``info``: the base model's record (its training config is kept). ``cache``: ``encoder_cache``'s
+    output for these scenes, when several refiners are fitted on one encoder (else it is computed here).
+    Returns a summary."""
     from tqdm import tqdm
 
     from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
@@ -134,8 +145,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
     record = {"fit": {k: v for k, v in asdict(cfg).items() if k != "steps"}, "targets": str(targets_dir), "target_scenes": count}
-    if model.cfg.refiner_glimpse or model.cfg.refiner_coords:  # recorded when not the default, so older runs still resume
-        record["refiner"] = {"glimpse": model.cfg.refiner_glimpse, "coords": model.cfg.refiner_coords}
+    if refiner_record(model):  # recorded when not the default, so older runs still resume
+        record["refiner"] = refiner_record(model)
     ckpt = out / "checkpoint.safetensors"
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -147,7 +158,10 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
         model.refiner.load_state_dict({k[len("refiner."):]: v for k, v in tensors.items() if k.startswith("refiner.")})
         load_optimizer(opt, tensors, meta["optimizer"])
         step = meta["step"]
-    cache = encoder_cache(model, ds, count, progress=progress)
+    if cache is None:
+        cache = encoder_cache(model, ds, count, progress=progress)
+    elif len(cache["scale"]) < count:
+        raise DistillError(f"the encoder cache holds {len(cache['scale'])} scenes, the targets {count}")
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
     log = out / "log.jsonl"
