@@ -8,7 +8,7 @@ and reports the held-out loss split by term, against no correction:
         --variants "base|channels=64,64,128,128;fc=512,512" --steps 3000 --out runs/s46/refiner_sweep.json
 
 A variant is ``;``-separated ``key=value`` of ``ModelConfig``'s refiner fields (``channels``, ``fc``, ``coords``,
-``glimpse``: ``refiner_`` left off); ``base`` is the defaults. A model that has a refiner gets a fresh one.
+``glimpse``, ``shape``, ``keep``: ``refiner_`` left off); ``base`` is the defaults. A model that has a refiner gets a fresh one.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from pathlib import Path
 import torch
 
 from prismonet.data.dataset import SceneDataset
-from prismonet.model.distill import DistillTargets, distill_terms, seen_slots
+from prismonet.model.distill import MIN_VISIBLE, VISIBLE, DistillTargets, distill_terms, seen_slots
 from prismonet.model.io import load_model
-from prismonet.model.refiner import apply_correction
+from prismonet.model.refiner import apply_correction, split_keep
 from prismonet.model.refiner_fit import RefinerFitConfig, cached_refiner_inputs, encoder_cache, fit_refiner, with_refiner
 from prismonet.render import SceneParams
 
@@ -41,28 +41,39 @@ def parse_variant(text: str) -> dict:
             out["refiner_coords"] = v.lower() in ("1", "true", "yes")
         elif k == "glimpse":
             out["refiner_glimpse"] = float(v)
+        elif k in ("shape", "keep"):
+            out[f"refiner_{k}"] = v.lower() in ("1", "true", "yes")
         else:
-            raise SystemExit(f"unknown variant key {k!r} (channels, fc, coords, glimpse)")
+            raise SystemExit(f"unknown variant key {k!r} (channels, fc, coords, glimpse, shape, keep)")
     return out
 
 
 @torch.no_grad()
 def term_losses(model, cache, ds, targets, idx: torch.Tensor, correct: bool) -> dict[str, float]:
-    """Mean per-term distillation loss over the target slots of scenes ``idx``, with or without the refiner."""
-    sums, n = {k: 0.0 for k in TERMS}, 0.0
+    """Mean per-term distillation loss over the target slots of scenes ``idx``, with or without the refiner
+    (``TERMS``, plus ``shape`` when the targets have shape latents). A refiner with a keep output adds
+    ``keep_wrong``: the fraction of all slots it keeps where the fit hides them or drops where the fit shows them."""
+    sums: dict[str, float] = {}
+    n, wrong, slots = 0.0, 0.0, 0
     for s in range(0, len(idx), 128):
         i = idx[s:s + 128]
         params = SceneParams(*(cache[k][i] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
-        if correct:
-            delta = model.refiner(*cached_refiner_inputs(model, cache, ds, i, params))
-            params = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
         t, _ = targets.lookup(i)
+        if correct:
+            delta, logit = split_keep(model.refiner(*cached_refiner_inputs(model, cache, ds, i, params)), model.cfg.refiner_keep)
+            params = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
+            if logit is not None:
+                wrong += float(((logit.reshape(t[VISIBLE].shape) > 0) != (t[VISIBLE] >= MIN_VISIBLE)).sum())
+                slots += logit.numel()
         terms = distill_terms(params, t)
         seen = seen_slots(t, terms["scale"])
-        for k in TERMS:
-            sums[k] += float((terms[k] * seen).sum())
+        for k, v in terms.items():
+            sums[k] = sums.get(k, 0.0) + float((v * seen).sum())
         n += float(seen.sum())
-    return {k: v / max(n, 1.0) for k, v in sums.items()}
+    out = {k: v / max(n, 1.0) for k, v in sums.items()}
+    if slots:
+        out["keep_wrong"] = wrong / slots
+    return out
 
 
 def main() -> None:
@@ -93,17 +104,18 @@ def main() -> None:
                               info={**info, "init_from": str(args.model)}, cache=cache)
         after = term_losses(model, cache, ds, targets, held, correct=True)
         row = {"variant": text or "base", "steps": summary["steps"], "seconds": summary["seconds"], "before": before,
-               "after": after, "held_out_before": sum(before.values()), "held_out_after": sum(after.values())}
+               "after": after, "held_out_before": sum(before.values()),
+               "held_out_after": sum(v for k, v in after.items() if k in before)}
         rows.append(row)
         print(json.dumps(row))
     Path(args.out).write_text(json.dumps({"model": args.model, "targets": args.targets, "rows": rows}, indent=1))
-    print("| variant | steps | s | held-out before | after | position | scale | rotation | texture |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    names = sorted({k for r in rows for k in r["after"]}, key=lambda k: (k == "keep_wrong", k)) or list(TERMS)
+    print("| variant | steps | s | held-out before | after | " + " | ".join(names) + " |")
+    print("|---" * (5 + len(names)) + "|")
     for r in rows:
         a, b = r["after"], r["before"]
         print(f"| {r['variant']} | {r['steps']} | {r['seconds']:.0f} | {r['held_out_before']:.4f} | {r['held_out_after']:.4f} | "
-              + " | ".join(f"{b[k]:.4f} → {a[k]:.4f}" for k in TERMS) + " |")
-
+              + " | ".join(f"{b.get(k, float('nan')):.4f} → {a.get(k, float('nan')):.4f}" for k in names) + " |")
 
 if __name__ == "__main__":
     main()

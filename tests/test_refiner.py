@@ -44,6 +44,43 @@ def test_correction_hand_computed():
     assert torch.equal(kept.position[0, 0], new.position[0, 0])
 
 
+def test_shape_correction_hand_computed():
+    """With ``D_sh`` more outputs the shape latent adds them (the texture its own ``D_tex``); an inactive slot keeps
+    its shape; an output of any other length is refused."""
+    p = two_slots()
+    d = torch.zeros(2, 5 + 7 + 8)
+    d[:, 5:12] = 0.5
+    d[0, 12:] = torch.arange(8.0)
+    d[1, 12:] = -1.0
+    new = apply_correction(p, d, torch.ones(3), (0.25, 0.9))
+    assert new.z_tex[0].flatten().tolist() == pytest.approx([0.5] * 14)
+    assert new.z_sh[0, 0].tolist() == pytest.approx(list(range(8)))
+    assert new.z_sh[0, 1].tolist() == pytest.approx([-1.0] * 8)
+    p.active = torch.tensor([[True, False]])
+    kept = apply_correction(p, d, torch.ones(3), (0.25, 0.9))
+    assert torch.equal(kept.z_sh[0, 1], p.z_sh[0, 1]) and torch.equal(kept.z_sh[0, 0], new.z_sh[0, 0])
+    assert torch.equal(apply_correction(p, d[:, :12], torch.ones(3), (0.25, 0.9)).z_sh, p.z_sh)  # no shape outputs
+    with pytest.raises(ValueError, match="refiner output"):
+        apply_correction(p, d[:, :15], torch.ones(3), (0.25, 0.9))
+
+
+def test_keep_logit_drops_slots():
+    """With ``keep`` the last output is a keep logit: a slot whose logit is not positive becomes inactive (its latents
+    still move), one already inactive stays inactive and keeps its latents."""
+    p = two_slots()
+    d = torch.zeros(2, 13)
+    d[:, 0] = 0.1
+    d[0, -1], d[1, -1] = 2.0, -0.5
+    new = apply_correction(p, d, torch.ones(3), (0.25, 0.9), keep=True)
+    assert new.active.tolist() == [[True, False]]
+    assert new.position[0, :, 0].tolist() == pytest.approx([0.1, 1.1])  # the keep logit is not read as a latent
+    assert torch.equal(new.z_tex, p.z_tex)
+    p.active = torch.tensor([[False, True]])
+    d[:, -1] = 1.0
+    kept = apply_correction(p, d, torch.ones(3), (0.25, 0.9), keep=True)
+    assert kept.active.tolist() == [[False, True]] and float(kept.position[0, 0, 0]) == 0.0
+
+
 def test_correction_gradcheck():
     p = two_slots(torch.float64)
     d = torch.randn(2, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 0.3
@@ -54,6 +91,8 @@ def test_correction_gradcheck():
         return n.position, n.cos_sin, n.scale, n.z_tex
 
     assert torch.autograd.gradcheck(f, (d,))
+    d_sh = torch.randn(2, 20, dtype=torch.float64, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: apply_correction(p, x, torch.ones(3, dtype=torch.float64), (0.1, 5.0)).z_sh, (d_sh,))
 
 
 def test_slot_views_and_latents():
@@ -101,7 +140,8 @@ def test_centre_pixels_is_the_projection():
     assert uv[0].flatten().tolist() == pytest.approx([31.5, 31.5, 41.5, 11.5])
 
 
-@pytest.mark.parametrize("fields", [{"refiner_coords": True}, {"refiner_glimpse": 0.5, "refiner_coords": True}])
+@pytest.mark.parametrize("fields", [{"refiner_coords": True}, {"refiner_glimpse": 0.5, "refiner_coords": True},
+                                    {"refiner_coords": True, "refiner_shape": True}, {"refiner_keep": True}])
 def test_fresh_refiner_with_coords_or_glimpse_is_the_identity(shipped, fields):
     from dataclasses import replace
 
@@ -116,7 +156,12 @@ def test_fresh_refiner_with_coords_or_glimpse_is_the_identity(shipped, fields):
         r = new(b.rgb, b.K, b.T_world_cam, b.ground_z)
         plain = new(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
     assert torch.allclose(r.latents.params.position, plain.latents.params.position, atol=1e-6)
-    assert new.refiner.trunk[0].in_channels == IN_CHANNELS + 2
+    assert torch.equal(r.latents.params.z_sh, plain.latents.params.z_sh)
+    assert torch.allclose(r.composite.image, plain.composite.image, atol=1e-5)
+    assert r.latents.params.active is None or bool(r.latents.params.active.all())
+    assert new.refiner.trunk[0].in_channels == IN_CHANNELS + (2 if new.cfg.refiner_coords else 0)
+    extra = (new.sh_dim if fields.get("refiner_shape") else 0) + (1 if fields.get("refiner_keep") else 0)
+    assert new.refiner.head[-1].out_features == 5 + model.cfg.tex_dim + extra
 
 
 def test_refiner_glimpse_out_of_range():
@@ -142,18 +187,71 @@ def test_fresh_refiner_is_the_identity(shipped):
     assert torch.allclose(r.composite.image, out.composite.image, atol=1e-5)
 
 
-def _shifted_targets(model, ds, folder, count, shift):
-    """Targets ``shift`` away from the model's own slots (a known correction), in ``distill``'s format."""
+def _shifted_targets(model, ds, folder, count, shift, shape_step: float | None = None, visible=None):
+    """Targets ``shift`` away from the model's own slots (a known correction), in ``distill``'s format; with
+    ``shape_step`` also shape latents that far from the slots' own in every coordinate; ``visible``: the pixels
+    the fit shows of each slot (default 100 each)."""
     from prismonet.checkpoint import save_checkpoint
 
     b = ds.batch(list(range(count)))
     with torch.no_grad():
         p = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False).latents.params
     folder.mkdir()
-    save_checkpoint(folder / "chunk_00000.safetensors",
-                    {"scale": p.scale, "position": p.position + torch.tensor(shift), "cos_sin": p.cos_sin, "z_tex": p.z_tex,
-                     "bg_color": torch.zeros(count, 3), "visible": torch.full(p.scale.shape, 100.0)}, {"first": 0})
+    t = {"scale": p.scale, "position": p.position + torch.tensor(shift), "cos_sin": p.cos_sin, "z_tex": p.z_tex,
+         "bg_color": torch.zeros(count, 3),
+         "visible": torch.full(p.scale.shape, 100.0) if visible is None else torch.tensor(visible, dtype=torch.float32).expand(p.scale.shape)}
+    if shape_step is not None:
+        t["z_sh"] = p.z_sh + shape_step
+    save_checkpoint(folder / "chunk_00000.safetensors", t, {"first": 0})
     (folder / "targets.json").write_text(json.dumps({"count": count, "chunk": 256, "num_slots": model.cfg.num_slots}))
+
+
+def test_fit_refiner_learns_a_shape_step(shipped, tmp_path):
+    """Shape targets 0.3 from every slot's code: the held-out loss starts at the shape term (D_sh x 0.09) and a
+    refiner that corrects shapes takes most of it away; one that does not cannot move it."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.0, 0.0, 0.0], shape_step=0.3)
+    cfg = RefinerFitConfig(steps=60, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=60)
+    torch.manual_seed(0)
+    s = fit_refiner(with_refiner(model, refiner_shape=True), ds, tmp_path / "t", tmp_path / "shape", cfg, progress=False)
+    start = model.sh_dim * 0.09
+    assert s["held_out_start"] == pytest.approx(start, rel=1e-4)
+    assert s["held_out_end"] < 0.5 * start
+    torch.manual_seed(0)
+    plain = fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "plain", cfg, progress=False)
+    assert plain["held_out_end"] > 0.9 * start
+
+
+def test_fit_refiner_learns_which_slots_to_keep(shipped, tmp_path):
+    """Targets whose fit hides every slot: the refiner learns to drop them (held-out scenes too), so the saved model
+    renders nothing; targets that show every slot keep them all."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    cfg = RefinerFitConfig(steps=40, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=40)
+    b = ds.batch(list(range(8, 12)))  # the held-out scenes
+    for name, shown in (("hidden", 3.0), ("shown", 100.0)):
+        _shifted_targets(model, ds, tmp_path / name, 12, [0.0, 0.0, 0.0], visible=[shown] * model.cfg.num_slots)
+        torch.manual_seed(0)
+        s = fit_refiner(with_refiner(model, refiner_keep=True), ds, tmp_path / name, tmp_path / f"run_{name}", cfg, progress=False)
+        loaded, _ = load_model(tmp_path / f"run_{name}")
+        assert loaded.cfg.refiner_keep
+        with torch.no_grad():
+            out = loaded(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        if name == "hidden":
+            assert s["held_out_end"] < 0.5 * s["held_out_start"]  # starts at 0.2 x BCE(3, 0) = 0.61
+            assert not out.latents.params.active.any() and not out.obj_mask.any()
+        else:
+            assert out.latents.params.active.all() and out.obj_mask.any()
 
 
 def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
@@ -200,6 +298,16 @@ def test_fit_refiner_bad_input(shipped, tmp_path):
     _shifted_targets(shipped[0], ds, tmp_path / "t", 4, [0.0, 0.0, 0.0])
     with pytest.raises(DistillError, match="held out"):
         fit_refiner(with_refiner(shipped[0]), ds, tmp_path / "t", tmp_path / "run", RefinerFitConfig(holdout=4))
+    from prismonet.checkpoint import load_checkpoint, save_checkpoint
+
+    tensors, meta = load_checkpoint(tmp_path / "t" / "chunk_00000.safetensors")
+    (tmp_path / "old").mkdir()
+    save_checkpoint(tmp_path / "old" / "chunk_00000.safetensors", {k: v for k, v in tensors.items() if k != "visible"}, meta)
+    (tmp_path / "old" / "targets.json").write_text((tmp_path / "t" / "targets.json").read_text())
+    with pytest.raises(DistillError, match="which slots the fit shows"):
+        fit_refiner(with_refiner(shipped[0], refiner_keep=True), ds, tmp_path / "old", tmp_path / "run")
+    with pytest.raises(DistillError, match="no shape latents"):
+        fit_refiner(with_refiner(shipped[0], refiner_shape=True), ds, tmp_path / "t", tmp_path / "run")
 
 
 def test_refiner_corrects_the_chosen_and_the_kept_slots(shipped):

@@ -55,7 +55,8 @@ def cmd_refiner(args) -> int:
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
-    model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords)  # checks the refiner settings
+    model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords, refiner_shape=args.shape,
+                         refiner_keep=args.keep)  # checks the refiner settings
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
     from prismonet.model.distill_fit import weights_digest
@@ -105,5 +106,9 @@ def add_parsers(sub) -> None:
                    help="the refiner sees each slot through a window of this fraction of the image side around its "
                         "centre, zoomed to the image size (0: the whole image; 0.5 is the measured setting)")
     r.add_argument("--coords", action="store_true", help="the refiner also sees each pixel's image position")
+    r.add_argument("--shape", action="store_true",
+                   help="the refiner also corrects each slot's shape latent (fitted to targets that have shapes: --search-shapes)")
+    r.add_argument("--keep", action="store_true",
+                   help="the refiner also learns which slots to keep (those the search's fit shows); it drops the others")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])

@@ -72,6 +72,11 @@ class ModelConfig:
     refiner_glimpse: float = 0.0
     """> 0: the refiner sees each slot through a window of this fraction of the image side centred on the
     slot's projected centre, resampled to the image size (a zoom of 1 / ``refiner_glimpse``); 0: the whole image."""
+    refiner_shape: bool = False
+    """The refiner also corrects each slot's shape latent (a step added to it); else the shape is the encoder's."""
+    refiner_keep: bool = False
+    """The refiner also says whether each slot is worth keeping (a logit, trained on whether the search's fit shows
+    the slot); a slot it drops becomes inactive and renders nothing, so slivers and hidden slots cost nothing."""
     anchor: bool = False
     """Anchored slots (beyond the paper; ``prismonet.model.unexplained``): each encoder step is pointed at the
     deepest pixel of the largest part of the image that the slots so far leave unexplained in colour, sees that

@@ -85,7 +85,7 @@ class PriSMONet(nn.Module):
         self.texture = TextureField(cfg.tex_dim, cfg.texture_width, cfg.texture_depth)
         if cfg.refine_passes:
             self.refiner = SlotRefiner(self.sh_dim, cfg.tex_dim, cfg.image_size, cfg.refiner_channels, cfg.refiner_fc,
-                                       cfg.refiner_coords)
+                                       cfg.refiner_coords, cfg.refiner_shape, cfg.refiner_keep)
         self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
         self.register_buffer("pos_scale", torch.tensor(cfg.position_scale), persistent=False)
 
@@ -288,7 +288,7 @@ class PriSMONet(nn.Module):
             views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
                                                  K, T_world_cam)
             delta = self.refiner(views, latents)
-            new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range)
+            new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
             obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
             comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
             out = ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,

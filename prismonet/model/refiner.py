@@ -4,7 +4,9 @@ The recurrent encoder places each object before it sees the ones found after it,
 own render. The refiner ``g_r`` sees, per slot, the input image, what the composition of all slots
 misses of it (``I - I_comp``), the slot's visible and full silhouettes, and the slot's latents, and
 outputs a correction: a shift of the position, a turn of the yaw, a factor on the scale and a step of
-the texture latent (the shape latent is left to the encoder). Its last layer starts at zero, so a
+the texture latent, and with ``shape`` a step of the shape latent (else the shape is left to the encoder).
+With ``keep`` it also gives a keep logit per slot, trained on whether the search's fit shows the slot: a slot it
+drops becomes inactive and renders nothing (a learnt, colour-only counterpart of ``--prune``). Its last layer starts at zero, so a
 fresh refiner changes nothing. It reads colour alone, as the encoder does.
 
 It is trained to move the encoder's slots to where the test-time pose search and colour fit put them
@@ -32,13 +34,16 @@ MAX_TURN = 0.6
 """The largest yaw correction in radians (about 34 degrees): ``tanh`` bounds it."""
 MAX_LOG_SCALE = 0.4
 """The largest log-factor on the scale (a factor 0.67 to 1.49)."""
+KEEP_INIT = 3.0
+"""A fresh refiner's keep logit (probability 0.95): it keeps every slot, so it is still the identity."""
 
 
 class SlotRefiner(nn.Module):
-    """``(R, 8, H, W)`` slot views and ``(R, P)`` slot latents -> ``(R, 5 + D_tex)`` corrections."""
+    """``(R, 8, H, W)`` slot views and ``(R, P)`` slot latents -> ``(R, 5 + D_tex)`` corrections
+    (``+ D_sh`` with ``shape``; ``+ 1``, a last keep logit, with ``keep``)."""
 
     def __init__(self, sh_dim: int, tex_dim: int, image_size: int, channels: tuple[int, ...] = (32, 32, 64, 64),
-                 fc: tuple[int, ...] = (256, 256), coords: bool = False) -> None:
+                 fc: tuple[int, ...] = (256, 256), coords: bool = False, shape: bool = False, keep: bool = False) -> None:
         super().__init__()
         self.tex_dim = tex_dim
         self.trunk = conv_trunk(IN_CHANNELS + (COORD_CHANNELS if coords else 0), channels)
@@ -48,10 +53,12 @@ class SlotRefiner(nn.Module):
         mlp: list[nn.Module] = []
         for a, b in zip(dims[:-1], dims[1:]):
             mlp += [nn.Linear(a, b), nn.ReLU(inplace=True)]
-        mlp.append(nn.Linear(dims[-1], 5 + tex_dim))
+        mlp.append(nn.Linear(dims[-1], 5 + tex_dim + (sh_dim if shape else 0) + (1 if keep else 0)))
         self.head = nn.Sequential(*mlp)
         self.head[-1].weight.data.zero_()  # a fresh refiner is the identity
         self.head[-1].bias.data.zero_()
+        if keep:
+            self.head[-1].bias.data[-1] = KEEP_INIT
 
     def forward(self, views: torch.Tensor, latents: torch.Tensor) -> torch.Tensor:
         h = self.trunk(views.contiguous(memory_format=torch.channels_last)).flatten(1)
@@ -125,25 +132,44 @@ def slot_latents(params: SceneParams, pos_offset: torch.Tensor, pos_scale: torch
     return v.reshape(-1, v.shape[-1])
 
 
+def split_keep(delta: torch.Tensor, keep: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The refiner's raw output without its keep logit, and the ``(R,)`` logit (``None`` without ``keep``)."""
+    return (delta[..., :-1], delta[..., -1]) if keep else (delta, None)
+
+
 def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.Tensor,
-                     scale_range: tuple[float, float]) -> SceneParams:
-    """``params`` moved by the refiner's raw output ``delta (B*N, 5 + D_tex)``: position + ``pos_scale``
+                     scale_range: tuple[float, float], keep: bool = False) -> SceneParams:
+    """``params`` moved by the refiner's raw output ``delta (B*N, 5 + D_tex [+ D_sh] [+ 1])``: position + ``pos_scale``
     times the first three, yaw turned by ``MAX_TURN tanh``, scale times ``exp(MAX_LOG_SCALE tanh)``
-    (kept in ``scale_range``), texture latent plus the rest. Inactive slots keep their latents."""
+    (kept in ``scale_range``), texture latent plus the next ``D_tex``, and shape latent plus the next ``D_sh``
+    when there are that many more. With ``keep`` the last value is a keep logit: a slot whose logit is not
+    positive becomes inactive. Inactive slots keep their latents."""
     B, N = params.scale.shape
+    delta, keep_logit = split_keep(delta, keep)
     d = delta.reshape(B, N, -1)
+    tex_end = 5 + params.z_tex.shape[-1]
+    z_sh = params.z_sh
+    if d.shape[-1] > tex_end:
+        if d.shape[-1] != tex_end + z_sh.shape[-1]:
+            raise ValueError(f"refiner output of {d.shape[-1]} values: expected {tex_end} or {tex_end + z_sh.shape[-1]}")
+        z_sh = z_sh + d[..., tex_end:]
     turn = MAX_TURN * torch.tanh(d[..., 3])
     c, s = torch.cos(turn), torch.sin(turn)
     cs = params.cos_sin
     cos_sin = torch.stack([cs[..., 0] * c - cs[..., 1] * s, cs[..., 0] * s + cs[..., 1] * c], -1)
     lo, hi = scale_range
     scale = (params.scale * torch.exp(MAX_LOG_SCALE * torch.tanh(d[..., 4]))).clamp(lo, hi)
-    new = SceneParams(z_sh=params.z_sh, z_tex=params.z_tex + d[..., 5:], position=params.position + pos_scale * d[..., :3],
-                      cos_sin=cos_sin, scale=scale, axis=params.axis, active=params.active)
+    active = params.active
+    if keep_logit is not None:
+        kept = keep_logit.reshape(B, N) > 0
+        active = kept if active is None else active & kept
+    new = SceneParams(z_sh=z_sh, z_tex=params.z_tex + d[..., 5:tex_end], position=params.position + pos_scale * d[..., :3],
+                      cos_sin=cos_sin, scale=scale, axis=params.axis, active=active)
     if params.active is not None:
-        keep = ~params.active
-        new.position = torch.where(keep[..., None], params.position, new.position)
-        new.cos_sin = torch.where(keep[..., None], params.cos_sin, new.cos_sin)
-        new.scale = torch.where(keep, params.scale, new.scale)
-        new.z_tex = torch.where(keep[..., None], params.z_tex, new.z_tex)
+        keep_old = ~params.active
+        new.position = torch.where(keep_old[..., None], params.position, new.position)
+        new.cos_sin = torch.where(keep_old[..., None], params.cos_sin, new.cos_sin)
+        new.scale = torch.where(keep_old, params.scale, new.scale)
+        new.z_tex = torch.where(keep_old[..., None], params.z_tex, new.z_tex)
+        new.z_sh = torch.where(keep_old[..., None], params.z_sh, new.z_sh)
     return new

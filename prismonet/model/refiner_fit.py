@@ -4,7 +4,9 @@
    colour fit on *training* scenes, from their RGB-D alone), once, without refinement; its composite, slot
    silhouettes and latents are kept in memory.
 2. The refiner learns to move those slots onto their targets: ``distill.distill_loss`` on the corrected
-   latents (position, scale, yaw, texture; hidden slots are not targets). No render is needed, so a step
+   latents (position, scale, yaw, texture, and the shape when the refiner corrects it and the targets have shapes;
+   hidden slots are not targets). A refiner with a keep output also learns which slots the fit shows
+   (``KEEP_WEIGHT``), hidden ones included. No render is needed, so a step
    costs a few milliseconds.
 3. The last ``holdout`` scenes with targets are held out: their loss is logged beside the loss of no
    correction at all, so a run shows how much of the way to the search it goes on scenes it did not fit.
@@ -24,8 +26,12 @@ from pathlib import Path
 
 import torch
 
-from prismonet.model.distill import DistillError, DistillTargets, DistillWeights, distill_loss
-from prismonet.model.refiner import apply_correction
+from prismonet.model.distill import MIN_VISIBLE, SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss
+from prismonet.model.refiner import apply_correction, split_keep
+
+KEEP_WEIGHT = 0.2
+"""Weight of the keep logit's binary cross-entropy (a refiner with ``refiner_keep``): the target is whether the
+search's fit shows the slot (``distill.MIN_VISIBLE`` pixels or more), over every slot of a scene with targets."""
 
 
 @dataclass(frozen=True)
@@ -56,7 +62,7 @@ class RefinerFitConfig:
 def with_refiner(model, passes: int = 1, **fields):
     """A copy of a trained scene model with a fresh (identity) refiner of ``passes`` passes; the
     encoder, background encoder and texture field keep their weights. ``fields``: other ``ModelConfig``
-    refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``); a
+    refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``, ``refiner_shape``, ``refiner_keep``); a
     refiner the model already has is replaced."""
     from prismonet.model.prismonet import PriSMONet
 
@@ -100,10 +106,16 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     from prismonet.render import SceneParams
 
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
-    delta = model.refiner(*cached_refiner_inputs(model, cache, ds, idx, params))
-    new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
+    delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, cache, ds, idx, params)), model.cfg.refiner_keep)
+    new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)  # every slot moves: the regression sees all
     t, have = targets.lookup(idx)
-    return distill_loss(new, t["bg_color"], t, have, weights)
+    loss = distill_loss(new, t["bg_color"], t, have, weights)
+    if keep_logit is not None:
+        shown = (t[VISIBLE] >= MIN_VISIBLE).to(keep_logit.dtype).reshape(-1)
+        per_slot = torch.nn.functional.binary_cross_entropy_with_logits(keep_logit, shown, reduction="none")
+        per_scene = per_slot.reshape(len(idx), -1).mean(1)
+        loss = loss + KEEP_WEIGHT * (per_scene * have).sum() / have.sum().clamp_min(1.0)
+    return loss
 
 
 def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128) -> float:
@@ -119,7 +131,7 @@ def refiner_record(model) -> dict:
     from prismonet.model.config import ModelConfig
 
     default = ModelConfig()
-    names = ("refiner_glimpse", "refiner_coords", "refiner_channels", "refiner_fc")
+    names = ("refiner_glimpse", "refiner_coords", "refiner_channels", "refiner_fc", "refiner_shape", "refiner_keep")
     return {n.removeprefix("refiner_"): getattr(model.cfg, n) for n in names if getattr(model.cfg, n) != getattr(default, n)}
 
 
@@ -138,6 +150,12 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     if not model.cfg.refine_passes:
         raise DistillError("the model has no refiner (refine_passes 0): start from with_refiner(model)")
     targets = DistillTargets(targets_dir, model.cfg.num_slots)
+    if model.cfg.refiner_keep and VISIBLE not in targets.t:
+        raise DistillError(f"{targets_dir}: these targets do not say which slots the fit shows, so a refiner that keeps "
+                           "or drops slots has nothing to learn it from; make them again with `prismonet distill`")
+    if model.cfg.refiner_shape and SHAPE not in targets.t:
+        raise DistillError(f"{targets_dir}: no shape latents in these targets, so a refiner that corrects shapes has nothing "
+                           "to learn them from; make targets with --search-shapes N, or leave the shape out")
     count = min(targets.count, len(ds))
     if count <= cfg.holdout:
         raise DistillError(f"{targets_dir}: {targets.count} scenes with targets, need more than the {cfg.holdout} held out")
