@@ -15,8 +15,8 @@ from prismonet.data.dataset import SceneDataset
 from prismonet.evaluation.evaluate import check_compatible, evaluate_model
 from prismonet.model.io import load_model
 
-MEASURED = {"AP0.5": 0.979, "depth_RMSE": 0.155}  # glimpse refiner, two passes (session 46); whole-image refiner (session 43): 1.000, 0.158; far-clipped distillation: 0.979, 0.172; far clip + seek: 0.958, 0.167; distilled: 0.865, 0.180; 60K: 0.823, 0.178
-MEASURED_SEARCH = {"AP0.5": 0.979, "depth_RMSE": 0.139, "PSNR": 27.4}  # whole-image refiner: 1.000, 0.150, 27.1; far-clipped distillation: 0.979, 0.146, 26.7; far clip + seek: 0.979, 0.147, 26.6; distilled: 0.958, 0.136, 26.0; 60K: 0.958, 0.145, 26.1
+MEASURED = {"AP0.5": 0.958, "depth_RMSE": 0.156}  # glimpse refiner that keeps or drops slots, two passes (session 47); glimpse refiner (session 46): 0.979, 0.155; whole-image refiner (session 43): 1.000, 0.158; far-clipped distillation: 0.979, 0.172; far clip + seek: 0.958, 0.167; distilled: 0.865, 0.180; 60K: 0.823, 0.178
+MEASURED_SEARCH = {"AP0.5": 1.000, "depth_RMSE": 0.149, "PSNR": 27.49}  # session 47; glimpse refiner (session 46): 0.979, 0.139, 27.4; whole-image refiner: 1.000, 0.150, 27.1; far-clipped distillation: 0.979, 0.146, 26.7; far clip + seek: 0.979, 0.147, 26.6; distilled: 0.958, 0.136, 26.0; 60K: 0.958, 0.145, 26.1
 AP_MARGIN = 0.05
 DEPTH_MARGIN = 1.10
 PSNR_MARGIN = 0.5
@@ -58,13 +58,15 @@ def test_shipped_model_files_travel_with_config_and_log():
 
     stem = shipped_model()
     assert stem.with_suffix(".safetensors").is_file() and stem.with_suffix(".json").is_file()
-    assert asset_path("clevr3_glimpse_log.jsonl").is_file() and asset_path("clevr3_glimpse_config.json").is_file()
-    assert asset_path("clevr3_glimpse_fit_log.jsonl").is_file()  # the refiner's first stage, the encoder frozen
-    assert asset_path("clevr3_refiner_fit_log.jsonl").is_file()  # the same for the model it replaces
+    assert asset_path("clevr3_keep_log.jsonl").is_file() and asset_path("clevr3_keep_config.json").is_file()
+    assert asset_path("clevr3_keep_fit_log.jsonl").is_file()  # the refiner's first stage, the encoder frozen
+    assert asset_path("clevr3_glimpse_fit_log.jsonl").is_file()  # the same for the models it replaces
+    assert asset_path("clevr3_refiner_fit_log.jsonl").is_file()
 
 
 @pytest.mark.parametrize("stem,config,log,recipe", [
-    ("clevr3_model", "clevr3_glimpse_config.json", "clevr3_glimpse_log.jsonl", "clevr3_glimpse.json"),  # shipped
+    ("clevr3_model", "clevr3_keep_config.json", "clevr3_keep_log.jsonl", "clevr3_keep.json"),  # shipped
+    ("clevr3_glimpse_model", "clevr3_glimpse_config.json", "clevr3_glimpse_log.jsonl", "clevr3_glimpse.json"),  # shipped in session 46
     ("clevr3_refiner_model", "clevr3_refiner_config.json", "clevr3_refiner_log.jsonl", "clevr3_refiner.json"),  # shipped in sessions 43-45
     ("clevr3_fc_model", "clevr3_seek_distill_fc_config.json", "clevr3_seek_distill_fc_log.jsonl", "clevr3_seek_distill_fc.json"),  # its encoder's start
     ("clevr3_seek_model", "clevr3_seek_config.json", "clevr3_seek_log.jsonl", "clevr3_seek.json"),  # its start

@@ -7,11 +7,16 @@ from importlib import resources
 from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since 2026-11-25, session
-46: the far-clipped distilled model below with a learnt refinement pass that looks at each slot through a glimpse
-around it, ``model.refiner_glimpse`` 0.375 with position channels, fitted to that model's own search targets with
-the encoder frozen (``prismonet refiner --glimpse 0.375 --coords``), then 4K steps of both together,
-``configs/clevr3_glimpse.json``; applied twice, ``refine_passes`` 2, chosen on validation)."""
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 47): the
+glimpse-refiner recipe of session 46 (below) with a refiner that also learns which slots to keep
+(``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a dropped slot
+becomes inactive and renders nothing). Stage 1 ``prismonet refiner clevr3_fc ... --glimpse 0.375 --coords --keep``,
+stage 2 ``configs/clevr3_keep.json`` (its config and logs: ``clevr3_keep_config.json``, ``clevr3_keep_log.jsonl``,
+``clevr3_keep_fit_log.jsonl``); applied twice, ``refine_passes`` 2."""
+GLIMPSE_MODEL = "clevr3_glimpse_model"
+"""The model shipped in session 46: ``clevr3_fc`` with the glimpse refiner, two stages (``configs/clevr3_glimpse.json``;
+its config and logs are ``clevr3_glimpse_config.json``, ``clevr3_glimpse_log.jsonl``, ``clevr3_glimpse_fit_log.jsonl``),
+applied twice."""
 REFINER_MODEL = "clevr3_refiner_model"
 """The model shipped in sessions 43-45: the far-clipped distilled model with a whole-image refiner, one pass
 (``configs/clevr3_refiner.json``; its config and logs are ``clevr3_refiner_config.json``, ``clevr3_refiner_log.jsonl``
@@ -34,6 +39,7 @@ SHIPPED_SAMPLES = "samples/clevr3"
 
 MODELS = {
     "clevr3": SHIPPED_MODEL,
+    "clevr3_glimpse": GLIMPSE_MODEL,
     "clevr3_refiner": REFINER_MODEL,
     "clevr3_fc": FC_MODEL,
     "clevr3_60k": PREVIOUS_MODEL,
@@ -45,10 +51,12 @@ MODELS = {
     "blocktowers": "blocktowers_model",
     "cars": "cars_model",
     "cars_glimpse": "cars_glimpse_model",
+    "cars_keep": "cars_keep_model",
     "cars_seek": "cars_seek_model",
     "cars_distill": "cars_distill_model",
     "cars_20k": "cars_20k_model",
     "chairs": "chairs_model",
+    "chairs_refiner": "chairs_refiner_model",
     "chairs_depth01": "chairs_depth01_model",
     "tableware": "tableware_model",
     "clevr1to8": "clevr1to8_model",
@@ -80,10 +88,12 @@ MODEL_SAMPLES = {
     "blocktowers": "samples/towers",
     "cars": "samples/cars",
     "cars_glimpse": "samples/cars",
+    "cars_keep": "samples/cars",
     "cars_seek": "samples/cars",
     "cars_distill": "samples/cars",
     "cars_20k": "samples/cars",
     "chairs": "samples/chairs",
+    "chairs_refiner": "samples/chairs",
     "chairs_depth01": "samples/chairs",
     "tableware": "samples/tableware",
     "clevr1to8": "samples/clevr1to8",
