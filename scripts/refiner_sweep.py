@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from prismonet.data.dataset import SceneDataset
-from prismonet.model.distill import MIN_VISIBLE, VISIBLE, DistillTargets, distill_terms, seen_slots
+from prismonet.model.distill import DistillTargets, distill_terms, seen_slots
 from prismonet.model.io import load_model
 from prismonet.model.refiner import apply_correction, split_keep
 from prismonet.model.refiner_fit import RefinerFitConfig, cached_refiner_inputs, encoder_cache, fit_refiner, with_refiner
@@ -63,7 +63,8 @@ def term_losses(model, cache, ds, targets, idx: torch.Tensor, correct: bool) -> 
             delta, logit = split_keep(model.refiner(*cached_refiner_inputs(model, cache, ds, i, params)), model.cfg.refiner_keep)
             params = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
             if logit is not None:
-                wrong += float(((logit.reshape(t[VISIBLE].shape) > 0) != (t[VISIBLE] >= MIN_VISIBLE)).sum())
+                shown = seen_slots(t, t["scale"]) > 0
+                wrong += float(((logit.reshape(shown.shape) > 0) != shown).sum())
                 slots += logit.numel()
         terms = distill_terms(params, t)
         seen = seen_slots(t, terms["scale"])

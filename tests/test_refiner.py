@@ -311,6 +311,33 @@ def test_fit_refiner_bad_input(shipped, tmp_path):
         fit_refiner(with_refiner(shipped[0], refiner_shape=True), ds, tmp_path / "t", tmp_path / "run")
 
 
+@pytest.mark.parametrize("flag,words", [("--shape", "no shape latents"), ("--keep", "which slots the fit shows")])
+def test_refiner_command_refuses_targets_without_what_it_learns(shipped, tmp_path, capsys, flag, words):
+    """``prismonet refiner --shape`` on targets without shape latents, or ``--keep`` on targets that do not say which
+    slots the fit shows: one line, exit status 2, no run folder."""
+    from prismonet.assets import shipped_samples
+    from prismonet.checkpoint import load_checkpoint, save_checkpoint
+    from prismonet.cli import main
+    from prismonet.data.dataset import SceneDataset
+
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(shipped[0], ds, tmp_path / "t", 12, [0.0, 0.0, 0.0])  # shows every slot, has no shapes
+    from prismonet.model.distill_fit import weights_digest
+    from prismonet.model.io import load_model
+
+    info = json.loads((tmp_path / "t" / "targets.json").read_text())
+    info["model_digest"] = weights_digest(load_model("clevr3_fc")[0])  # the command checks whose targets they are first
+    (tmp_path / "t" / "targets.json").write_text(json.dumps(info))
+    if flag == "--keep":
+        tensors, meta = load_checkpoint(tmp_path / "t" / "chunk_00000.safetensors")
+        save_checkpoint(tmp_path / "t" / "chunk_00000.safetensors", {k: v for k, v in tensors.items() if k != "visible"}, meta)
+    rc = main(["refiner", "clevr3_fc", str(shipped_samples()), "--split", "test", "--targets", str(tmp_path / "t"),
+               "--out", str(tmp_path / "run"), "--holdout", "4", flag])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert rc == 2 and len(lines) == 1 and words in lines[0], lines
+    assert not (tmp_path / "run").exists()
+
+
 def test_refiner_corrects_the_chosen_and_the_kept_slots(shipped):
     """With extra encoder steps the choice is among the encoder's slots and the refiner corrects the chosen
     ones; with stopping it corrects the slots kept, the others stay inactive and render nothing."""
