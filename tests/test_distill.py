@@ -182,3 +182,19 @@ def test_weights_digest_tells_models_apart():
     with torch.no_grad():
         next(b.parameters()).view(-1)[0] += 1e-3
     assert weights_digest(a) != weights_digest(b)
+
+
+def test_keep_loss_hand_computed():
+    """The keep term: per scene the mean binary cross-entropy of the slots' keep logits against whether the fit shows
+    them (25 pixels or more), then the mean over the scenes with targets; targets without ``visible`` are refused."""
+    from prismonet.model.distill import keep_loss
+
+    logit = torch.tensor([[0.0, 2.0], [-1.0, 1.0]])
+    t = {"visible": torch.tensor([[30.0, 0.0], [24.0, 25.0]])}
+    first = (math.log(2.0) + math.log(1 + math.exp(2.0))) / 2  # shown at logit 0, hidden at logit 2
+    second = (math.log(1 + math.exp(-1.0)) + math.log(1 + math.exp(-1.0))) / 2  # hidden at -1, shown at 1
+    assert float(keep_loss(logit, t, torch.tensor([1.0, 0.0]))) == pytest.approx(first, rel=1e-6)
+    assert float(keep_loss(logit, t, torch.ones(2))) == pytest.approx((first + second) / 2, rel=1e-6)
+    assert float(keep_loss(logit, t, torch.zeros(2))) == 0.0
+    with pytest.raises(DistillError, match="which slots the fit shows"):
+        keep_loss(logit, {}, torch.ones(2))

@@ -400,3 +400,58 @@ def test_fit_refiner_on_a_shared_encoder_cache(shipped, tmp_path):
     short = {k: v[:8] for k, v in cache.items()}
     with pytest.raises(DistillError, match="cache holds 8 scenes"):
         fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "c", cfg, progress=False, cache=short)
+
+
+def test_stage2_keep_term_gradient_hand_computed(shipped):
+    """In training (stage 2) ``loss.w_keep`` reaches the refiner's keep logit: a fresh refiner outputs +3 for every slot,
+    so the gradient of the term alone on the keep output's bias is the mean over scenes of the mean over slots of
+    ``sigmoid(3) - shown``; nothing else of the refiner's last layer moves."""
+    from prismonet.model.losses import LossConfig, compute_losses
+    from prismonet.model.refiner import KEEP_INIT
+    from prismonet.model.refiner_fit import with_refiner
+
+    model, b, _ = shipped
+    ref = with_refiner(model, refiner_keep=True).train()
+    out = ref(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    assert out.keep_logit.shape == (4, model.cfg.num_slots)
+    assert torch.allclose(out.keep_logit, torch.full_like(out.keep_logit, KEEP_INIT))
+    visible = torch.tensor([[100.0, 0.0, 30.0], [0.0, 0.0, 0.0], [25.0, 24.0, 500.0], [100.0, 100.0, 100.0]])
+    have = torch.tensor([1.0, 1.0, 1.0, 0.0])
+    cfg = LossConfig(use_image=False, use_depth=False, use_ground=False, use_shape=False, w_keep=1.0)
+    terms = compute_losses(ref, out, b, cfg, 0, distill=({"visible": visible}, have))
+    terms.total.backward()
+    shown = (visible >= 25).float()[:3]
+    expect = float((torch.sigmoid(torch.tensor(KEEP_INIT)) - shown).mean(1).mean())
+    grad = ref.refiner.head[-1].bias.grad
+    assert float(grad[-1]) == pytest.approx(expect, rel=1e-5)
+    assert float(grad[:-1].abs().max()) == 0.0
+    assert float(terms.keep.detach()) == pytest.approx(float(torch.nn.functional.binary_cross_entropy_with_logits(
+        torch.full((3, 3), KEEP_INIT), shown)), rel=1e-5)
+
+
+def test_stage2_keep_term_needs_a_keep_refiner_and_visible_targets(tmp_path):
+    """``loss.w_keep`` without a refiner that keeps or drops slots, or without targets, is refused at the config;
+    targets that do not say which slots the fit shows are refused before the first step, in one line."""
+    from prismonet.assets import shipped_samples
+    from prismonet.checkpoint import save_checkpoint
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.losses import LossConfig
+    from prismonet.model.trainer import TrainConfig, TrainingError, train
+
+    keep_model = ModelConfig(refine_passes=1, refiner_keep=True)
+    with pytest.raises(ValueError, match="loss.w_keep needs"):
+        TrainConfig(loss=LossConfig(w_keep=0.1), distill="t")
+    with pytest.raises(ValueError, match="loss.w_keep needs"):
+        TrainConfig(loss=LossConfig(w_keep=0.1), model=keep_model)
+    with pytest.raises(ValueError, match="w_keep must be non-negative"):
+        LossConfig(w_keep=-1.0)
+    folder = tmp_path / "t"
+    folder.mkdir()
+    t = {"scale": torch.full((2, 3), 0.5), "position": torch.zeros(2, 3, 3), "cos_sin": torch.tensor([1.0, 0.0]).expand(2, 3, 2),
+         "z_tex": torch.zeros(2, 3, 7), "bg_color": torch.zeros(2, 3)}
+    save_checkpoint(folder / "chunk_00000.safetensors", t, {"first": 0})
+    (folder / "targets.json").write_text(json.dumps({"count": 2, "chunk": 256, "num_slots": 3}))
+    cfg = TrainConfig(data=str(shipped_samples()), split="test", steps=1, model=keep_model,
+                      loss=LossConfig(w_keep=0.1), distill=str(folder))
+    with pytest.raises(TrainingError, match="nothing to learn from"):
+        train(cfg, tmp_path / "run", progress=False)

@@ -121,6 +121,17 @@ def seen_slots(targets: dict[str, torch.Tensor], like: torch.Tensor) -> torch.Te
     return torch.ones_like(like)
 
 
+def keep_loss(keep_logit: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor) -> torch.Tensor:
+    """``()``: the binary cross-entropy of ``keep_logit (B, K)`` (a refiner's keep output) against whether the fit shows
+    each slot (``seen_slots``), the mean over each scene's slots, hidden ones included, then over the scenes that have
+    targets (``mask``). Needs targets with ``visible``."""
+    if VISIBLE not in targets:
+        raise DistillError("these targets do not say which slots the fit shows; a keep term has nothing to learn from")
+    shown = seen_slots(targets, keep_logit)
+    per_scene = torch.nn.functional.binary_cross_entropy_with_logits(keep_logit, shown, reduction="none").mean(1)
+    return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
+
+
 def distill_loss(params, bg_color: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
                  w: DistillWeights = DistillWeights()) -> torch.Tensor:
     """``()``: the weighted regression of the decoded slots onto their targets, mean over the scenes

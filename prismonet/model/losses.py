@@ -80,9 +80,13 @@ class LossConfig:
     w_seek: float = 0.0
     """Seeking the unexplained (beyond the paper; ``prismonet.model.seek``): weight of the pull of slots that
     explain nothing towards the largest foreground region (from the depth image) that no slot covers."""
+    w_keep: float = 0.0
+    """With a refiner that keeps or drops slots (``model.refiner_keep``) and distillation targets that say which
+    slots the fit shows: weight of the keep logits' binary cross-entropy against that (``distill.keep_loss``, beyond
+    the paper, as in the refiner's first stage, ``refiner_fit.KEEP_WEIGHT``). 0: the keep output gets no gradient."""
 
     def __post_init__(self) -> None:
-        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence", "w_distill", "w_seek", "distill_texture"):
+        for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence", "w_distill", "w_seek", "w_keep", "distill_texture"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if self.sh_steps <= 0 or self.blur_steps <= 0:
@@ -213,6 +217,7 @@ class LossTerms:
     distill: torch.Tensor
     presence: torch.Tensor
     seek: torch.Tensor
+    keep: torch.Tensor
 
     def scalars(self) -> dict[str, float]:
         return {k: float(v.detach()) for k, v in self.__dict__.items()}
@@ -243,6 +248,14 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
         dist = distill_loss(p, out.latents.bg_color, *distill, DistillWeights(texture=cfg.distill_texture))
     else:
         dist = zero
+    if cfg.w_keep > 0 and distill is not None:
+        from prismonet.model.distill import keep_loss
+
+        if out.keep_logit is None:
+            raise ValueError("loss.w_keep > 0 needs a model whose refiner keeps or drops slots (model.refiner_keep)")
+        keep = keep_loss(out.keep_logit, *distill)
+    else:
+        keep = zero
     presence = out.presence.sum(1).mean() if out.presence is not None else zero
     if cfg.w_seek > 0:
         from prismonet.model.seek import seek_foreground, seek_loss, seek_targets
@@ -254,5 +267,5 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
         seek = zero
     total = (cfg.w_image * image + cfg.w_depth * depth + cfg.w_ground * ground + shape_weight(cfg, step) * shape
              + cfg.w_intersection * inter + cfg.w_outside * outside + cfg.w_pose * pose + cfg.w_mask * mask
-             + cfg.w_distill * dist + cfg.w_presence * presence + cfg.w_seek * seek)
-    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask, dist, presence, seek)
+             + cfg.w_distill * dist + cfg.w_presence * presence + cfg.w_seek * seek + cfg.w_keep * keep)
+    return LossTerms(total, image, depth, ground, shape, inter, outside, pose, mask, dist, presence, seek, keep)

@@ -16,7 +16,7 @@ from prismonet.geometry.transforms import invert_similarity, transform_points
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
-from prismonet.model.refiner import SlotRefiner, apply_correction, refiner_inputs
+from prismonet.model.refiner import SlotRefiner, apply_correction, refiner_inputs, split_keep
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.model.unexplained import AnchorRule, find_anchors
@@ -56,6 +56,8 @@ class ModelOutput:
     slot_steps: torch.Tensor | None = None
     """``(B, N)`` the 0-based encoder step that found each slot; ``None``: slot k is step k. Differs
     when slots were selected among more encoder steps (``prismonet.model.select``)."""
+    keep_logit: torch.Tensor | None = None
+    """``(B, N)`` the last refinement pass's keep logits (``cfg.refiner_keep``), else ``None``."""
 
     def encoder_steps(self) -> torch.Tensor:
         """``(B, N)`` the 0-based encoder step of each slot."""
@@ -289,10 +291,12 @@ class PriSMONet(nn.Module):
                                                  K, T_world_cam)
             delta = self.refiner(views, latents)
             new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
+            keep_logit = split_keep(delta, self.cfg.refiner_keep)[1]
             obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
             comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
             out = ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                              obj.soft_mask, out.presence, out.slot_steps)
+                              obj.soft_mask, out.presence, out.slot_steps,
+                              None if keep_logit is None else keep_logit.reshape(new.scale.shape))
         return out
 
     def refiner_inputs(self, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,

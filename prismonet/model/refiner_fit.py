@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from prismonet.model.distill import SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, seen_slots
+from prismonet.model.distill import SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss
 from prismonet.model.refiner import apply_correction, split_keep
 
 KEEP_WEIGHT = 0.2
@@ -111,10 +111,7 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     t, have = targets.lookup(idx)
     loss = distill_loss(new, t["bg_color"], t, have, weights)
     if keep_logit is not None:
-        shown = seen_slots(t, t["scale"]).reshape(-1)  # the fit shows the slot: the keep target
-        per_slot = torch.nn.functional.binary_cross_entropy_with_logits(keep_logit, shown, reduction="none")
-        per_scene = per_slot.reshape(len(idx), -1).mean(1)
-        loss = loss + KEEP_WEIGHT * (per_scene * have).sum() / have.sum().clamp_min(1.0)
+        loss = loss + KEEP_WEIGHT * keep_loss(keep_logit.reshape(len(idx), -1), t, have)
     return loss
 
 

@@ -102,6 +102,9 @@ class TrainConfig:
             raise ValueError("init_transfer and init_widen need init_from (the trained model to start from)")
         if self.init_transfer and self.init_widen:
             raise ValueError("init_transfer and init_widen exclude each other")
+        if self.loss.w_keep > 0 and not (self.model.refine_passes and self.model.refiner_keep and self.distill):
+            raise ValueError("loss.w_keep needs a refiner that keeps or drops slots (model.refine_passes >= 1, "
+                             "model.refiner_keep) and distillation targets (distill) that say which slots the fit shows")
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
         if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
@@ -301,10 +304,13 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             if rank == 0:
                 print(f"init_from {cfg.init_from}: an unanchored model; position outputs zeroed (every slot starts at its anchor)")
     targets = None
-    if cfg.distill is not None and cfg.loss.w_distill > 0:
-        from prismonet.model.distill import DistillTargets
+    if cfg.distill is not None and (cfg.loss.w_distill > 0 or cfg.loss.w_keep > 0):
+        from prismonet.model.distill import VISIBLE, DistillTargets
 
         targets = DistillTargets(cfg.distill, cfg.model.num_slots)
+        if cfg.loss.w_keep > 0 and VISIBLE not in targets.t:
+            raise TrainingError(f"{cfg.distill}: these targets do not say which slots the fit shows, so loss.w_keep has "
+                                "nothing to learn from; make them again with `prismonet distill`")
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr)
     cfg_json = json.loads(json.dumps(asdict(cfg)))
