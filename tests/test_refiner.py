@@ -455,3 +455,39 @@ def test_stage2_keep_term_needs_a_keep_refiner_and_visible_targets(tmp_path):
                       loss=LossConfig(w_keep=0.1), distill=str(folder))
     with pytest.raises(TrainingError, match="nothing to learn from"):
         train(cfg, tmp_path / "run", progress=False)
+
+
+def test_refiner_runs_on_active_slots_only():
+    """An anchored 8-slot model with a (random) keep refiner on shipped 1-8-object scenes: the refiner network sees
+    only the active slots' rows, and its corrections are those of a run over every row; inactive slots stay
+    inactive and keep their latents."""
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import with_refiner
+
+    base, _ = load_model("clevr1to8_anchor")
+    model = with_refiner(base, refiner_keep=True, refiner_glimpse=0.375, refiner_coords=True).eval()
+    torch.manual_seed(0)
+    torch.nn.init.normal_(model.refiner.head[-1].weight, std=1e-3)
+    b = SceneDataset(samples_for("clevr1to8_anchor"), split="test").batch([0, 1, 2, 3])
+    seen = []
+    hook = model.refiner.register_forward_hook(lambda m, i, o: seen.append(i[0].shape[0]))
+    with torch.no_grad():
+        plain = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        p = plain.latents.params
+        every = model.refiner(*model.refiner_inputs(b.rgb, plain.composite.image, plain.composite.instance, plain.obj_mask,
+                                                    p, b.K, b.T_world_cam))
+    hook.remove()
+    active = p.active
+    assert 0 < int(active.sum()) < active.numel()  # the scenes leave some slots empty
+    assert seen[0] == int(active.sum())  # the refiner pass ran on the active rows only
+    from prismonet.model.refiner import apply_correction
+
+    want = apply_correction(p, every, model.pos_scale, model.cfg.scale_range, keep=True)
+    got = out.latents.params
+    assert torch.equal(got.active, want.active)
+    for name in ("position", "scale", "cos_sin", "z_tex"):
+        assert torch.allclose(getattr(got, name), getattr(want, name), atol=1e-5)
+        assert torch.equal(getattr(got, name)[~active], getattr(p, name)[~active])

@@ -289,7 +289,7 @@ class PriSMONet(nn.Module):
             params = out.latents.params
             views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
                                                  K, T_world_cam)
-            delta = self.refiner(views, latents)
+            delta = self._refiner_delta(views, latents, params.active)
             new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
             keep_logit = split_keep(delta, self.cfg.refiner_keep)[1]
             obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
@@ -298,6 +298,16 @@ class PriSMONet(nn.Module):
                               obj.soft_mask, out.presence, out.slot_steps,
                               None if keep_logit is None else keep_logit.reshape(new.scale.shape))
         return out
+
+    def _refiner_delta(self, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
+        """The refiner's raw output for every slot; the network runs on the active slots only (an inactive slot's row
+        is zero: ``apply_correction`` leaves it as it is, and a zero keep logit keeps it inactive), so a scene pays for
+        the slots it uses."""
+        if active is None or bool(active.all()):
+            return self.refiner(views, latents)
+        rows = active.reshape(-1).nonzero().squeeze(1)
+        delta = views.new_zeros(views.shape[0], self.refiner.head[-1].out_features)
+        return delta.index_copy(0, rows, self.refiner(views[rows], latents[rows])) if len(rows) else delta
 
     def refiner_inputs(self, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
                        params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
