@@ -1,6 +1,9 @@
 """Write a copy of a trained model that applies its learnt refiner a different number of times (the same weights).
 
     python3 scripts/set_refine_passes.py runs/clevr3_glimpse 2 runs/clevr3_glimpse_2pass
+    python3 scripts/set_refine_passes.py runs/s48/a18_keep_fit 2 runs/s48/a18_keep_re2 --reanchor 2   # anchored models
+
+``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: anchored steps after refinement, into empty slots).
 
 The copy's record keeps the source's and notes the change (``refine_passes_from``); the passes were chosen on
 the validation split (EVALUATION.md, "Session 46").
@@ -21,16 +24,24 @@ def main() -> None:
     ap.add_argument("model", help="run folder, .safetensors, or a shipped name (with a refiner)")
     ap.add_argument("passes", type=int)
     ap.add_argument("out", help="new run folder")
+    ap.add_argument("--reanchor", type=int, default=None, metavar="N",
+                    help="also set reanchor_steps to N (an anchored model: N more anchored steps after refinement)")
     args = ap.parse_args()
     model, info = load_model(args.model)
     if not model.cfg.refine_passes or args.passes < 1:
         raise SystemExit(f"{args.model}: needs a model with a refiner and passes >= 1 (it has {model.cfg.refine_passes}, asked {args.passes})")
-    new = PriSMONet(replace(model.cfg, refine_passes=args.passes), prior=model.prior)
+    fields = {"refine_passes": args.passes}
+    if args.reanchor is not None:
+        if not model.cfg.anchor or args.reanchor < 0:
+            raise SystemExit(f"{args.model}: --reanchor needs an anchored model and N >= 0 (anchor {model.cfg.anchor}, asked {args.reanchor})")
+        fields["reanchor_steps"] = args.reanchor
+    new = PriSMONet(replace(model.cfg, **fields), prior=model.prior)
     new.load_state_dict(model.state_dict())
     Path(args.out).mkdir(parents=True, exist_ok=True)
     record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
-    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": {"source": str(args.model), "passes": model.cfg.refine_passes}})
-    print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes")
+    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": {"source": str(args.model), "passes": model.cfg.refine_passes, "reanchor_steps": model.cfg.reanchor_steps}})
+    print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes"
+          + ("" if args.reanchor is None else f", reanchor_steps {model.cfg.reanchor_steps} -> {args.reanchor}"))
 
 
 if __name__ == "__main__":

@@ -491,3 +491,41 @@ def test_refiner_runs_on_active_slots_only():
     for name in ("position", "scale", "cos_sin", "z_tex"):
         assert torch.allclose(getattr(got, name), getattr(want, name), atol=1e-5)
         assert torch.equal(getattr(got, name)[~active], getattr(p, name)[~active])
+
+
+def test_reanchor_fills_empty_slots_and_leaves_the_others():
+    """``reanchor_steps``: after refinement, more anchored steps go into empty slots only (at most that many per
+    scene); the slots the refiner left active keep their latents exactly; training ignores it; it needs an anchored
+    model with a refiner."""
+    from dataclasses import replace
+
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+
+    base, _ = load_model("clevr1to8_keep")
+    model = PriSMONet(replace(base.cfg, reanchor_steps=2), prior=base.prior)
+    model.load_state_dict(base.state_dict())
+    model.eval()
+    base.eval()
+    b = SceneDataset(samples_for("clevr1to8_keep"), split="test").batch(list(range(16)))
+    with torch.no_grad():
+        before = base(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params
+        after = model(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params
+    old, new = before.active, after.active
+    assert bool((new | ~old).all())  # no slot the refiner kept is lost
+    added = new & ~old
+    assert bool(added.any()) and int(added.sum(1).max()) <= 2
+    for name in ("position", "scale", "cos_sin", "z_tex", "z_sh"):
+        assert torch.equal(getattr(after, name)[old], getattr(before, name)[old])
+    model.train()
+    with torch.no_grad():
+        trained_way = model(b.rgb[:2], b.K[:2], b.T_world_cam[:2], b.ground_z[:2]).latents.params.active
+        base.train()
+        plain = base(b.rgb[:2], b.K[:2], b.T_world_cam[:2], b.ground_z[:2]).latents.params.active
+    assert torch.equal(trained_way, plain)
+    for bad in ({"reanchor_steps": 1}, {"reanchor_steps": 1, "anchor": True}, {"reanchor_steps": -1, "anchor": True, "refine_passes": 1}):
+        with pytest.raises(ValueError, match="reanchor_steps"):
+            ModelConfig(**bad)

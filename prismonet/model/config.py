@@ -86,6 +86,11 @@ class ModelConfig:
     """With ``anchor``: the largest per-channel colour difference of an explained pixel."""
     anchor_min_area: int = 20
     """With ``anchor``: the fewest pixels of an unexplained part worth a slot."""
+    reanchor_steps: int = 0
+    """With ``anchor`` and a refiner, at inference (beyond the paper): after the refinement passes, up to this many
+    more anchored encoder steps on what the *refined* slots leave unexplained, each into the scene's first empty slot,
+    then the refiner's passes on the new slots alone. The encoder stopped on a composition that the refiner then
+    corrected; a part it had given up on (a failed region) may now stand alone. 0: off. Training ignores it."""
 
     def __post_init__(self) -> None:
         if self.pose_frame not in ("world", "camera"):
@@ -102,6 +107,8 @@ class ModelConfig:
             raise ValueError("anchor and presence are two ways of leaving slots empty: choose one")
         if self.anchor_min_area < 1 or not self.anchor_color_tol > 0:
             raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
+        if self.reanchor_steps < 0 or (self.reanchor_steps and not (self.anchor and self.refine_passes)):
+            raise ValueError(f"reanchor_steps must be >= 0 and needs anchor and refine_passes >= 1, got {self.reanchor_steps}")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):
             raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
         if not 0.0 <= self.refiner_glimpse <= 1.0:

@@ -7,7 +7,7 @@ object is rendered right away so that the next step can see it (Fig. 2-3 of the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -277,26 +277,92 @@ class PriSMONet(nn.Module):
         else:
             comp = composite(obj_depth, obj_mask, obj_color, bg_color, bg_depth)
         out = ModelOutput(SceneLatents(params, bg_color), comp, obj_depth, obj_mask, obj_color, bg_depth, soft, presence)
-        return self.refine_slots(out, image, K, T_world_cam, ground_z) if refine else out
+        if not refine:
+            return out
+        out = self.refine_slots(out, image, K, T_world_cam, ground_z)
+        if self.cfg.reanchor_steps and not self.training:
+            out = self.reanchor(out, image, K, T_world_cam, ground_z)
+        return out
 
     def refine_slots(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                      ground_z: torch.Tensor) -> ModelOutput:
         """The model's ``cfg.refine_passes`` refinement passes (``prismonet.model.refiner``; none: ``out`` as
         it is): each corrects every active slot of ``out`` from its render against ``image``, then renders all
         again."""
-        H, W = image.shape[-2:]
         for _ in range(self.cfg.refine_passes):
-            params = out.latents.params
-            views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
-                                                 K, T_world_cam)
-            delta = self._refiner_delta(views, latents, params.active)
-            new = apply_correction(params, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
-            keep_logit = split_keep(delta, self.cfg.refiner_keep)[1]
-            obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
-            comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
-            out = ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                              obj.soft_mask, out.presence, out.slot_steps,
-                              None if keep_logit is None else keep_logit.reshape(new.scale.shape))
+            out = self._refine_pass(out, image, K, T_world_cam)
+        return out
+
+    def _refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                     only: torch.Tensor | None = None) -> ModelOutput:
+        """One refinement pass over the active slots of ``out``, or over the slots ``only (B, N)`` bool alone (the
+        others keep their latents and their activity), then a render of every active slot."""
+        H, W = image.shape[-2:]
+        params = out.latents.params
+        views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
+                                             K, T_world_cam)
+        delta = self._refiner_delta(views, latents, params.active if only is None else only)
+        subject = params if only is None else replace(params, active=only)
+        new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
+        if only is not None:
+            before = params.active if params.active is not None else torch.ones_like(only)
+            new.active = (before & ~only) | (new.active if new.active is not None else only)
+        keep_logit = split_keep(delta, self.cfg.refiner_keep)[1]
+        obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
+        comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
+        return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
+                           obj.soft_mask, out.presence, out.slot_steps,
+                           None if keep_logit is None else keep_logit.reshape(new.scale.shape))
+
+    @torch.no_grad()
+    def reanchor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                 ground_z: torch.Tensor) -> ModelOutput:
+        """``cfg.reanchor_steps`` more anchored encoder steps after refinement (see ``ModelConfig.reanchor_steps``):
+        each step's slot goes into its scene's first empty slot; a scene with no empty slot, or nothing left
+        unexplained, takes no step. Then the refiner's passes on the new slots alone."""
+        params = replace(out.latents.params)
+        B, N = params.scale.shape
+        H, W = image.shape[-2:]
+        active = params.active.clone() if params.active is not None else torch.ones(B, N, dtype=torch.bool)
+        shown = out.obj_mask & active[:, :, None, None]
+        cur_image = out.composite.image
+        cur_depth = torch.where(shown, out.obj_depth, torch.full_like(out.obj_depth, float("inf"))).amin(1, keepdim=True)
+        cur_mask = shown.any(1, keepdim=True).to(image.dtype)
+        rule, failed = self.anchor_rule(), torch.zeros(B, H, W, dtype=torch.bool)
+        added = torch.zeros(B, N, dtype=torch.bool)
+        rows = torch.arange(B)
+        for _ in range(self.cfg.reanchor_steps):
+            anchors = find_anchors(image, cur_image, rule, failed)
+            live = anchors.found & ~active.all(1)
+            if not live.any():
+                break
+            raw = self.encoder(self.encoder_input(image, cur_image, cur_mask, anchors.region))
+            slot = self.decode_latent(raw, K, T_world_cam, ground_z, anchors.uv)
+            slot.active = live[:, None].clone()
+            obj = render_objects(self.sdf_fn, self.color_fn, slot, K, T_world_cam, H, W, self.render_settings())
+            d, m, c = obj.depth, obj.mask, obj.color[:, 0]
+            win = m & (d < cur_depth)
+            cur_image = torch.where(win, c, cur_image)
+            cur_depth = torch.where(win, d, cur_depth)
+            cur_mask = torch.maximum(cur_mask, m.to(image.dtype))
+            failed |= rule.failed(anchors, image, cur_image)
+            k = (~active).to(torch.int8).argmax(1)  # each scene's first empty slot
+            b, k = rows[live], k[live]
+            for name in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
+                field = getattr(params, name).clone()
+                field[b, k] = getattr(slot, name)[b, 0]
+                setattr(params, name, field)
+            active[b, k] = True
+            added[b, k] = True
+        if not added.any():
+            return out
+        params.active = active
+        obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, self.render_settings())
+        comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
+        out = ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
+                          obj.soft_mask, out.presence, out.slot_steps, out.keep_logit)
+        for _ in range(self.cfg.refine_passes):
+            out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active)
         return out
 
     def _refiner_delta(self, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
