@@ -67,6 +67,7 @@ MODELS = {
     "clevr1to8_anchor8k": "clevr1to8_anchor8k_model",
     "tabletop": "tabletop_model",
     "tabletop_anchor": "tabletop_anchor_model",
+    "tabletop_keep": "tabletop_keep_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -105,6 +106,7 @@ MODEL_SAMPLES = {
     "clevr1to8_anchor8k": "samples/clevr1to8",
     "tabletop": "samples/tabletop",
     "tabletop_anchor": "samples/tabletop",
+    "tabletop_keep": "samples/tabletop",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 
