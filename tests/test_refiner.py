@@ -505,9 +505,11 @@ def test_reanchor_fills_empty_slots_and_leaves_the_others():
     from prismonet.model.io import load_model
     from prismonet.model.prismonet import PriSMONet
 
-    base, _ = load_model("clevr1to8_keep")
-    model = PriSMONet(replace(base.cfg, reanchor_steps=2), prior=base.prior)
-    model.load_state_dict(base.state_dict())
+    shipped, _ = load_model("clevr1to8_keep")  # ships with reanchor_steps 2: compare with the same weights without
+    base = PriSMONet(replace(shipped.cfg, reanchor_steps=0), prior=shipped.prior)
+    model = PriSMONet(replace(shipped.cfg, reanchor_steps=2), prior=shipped.prior)
+    base.load_state_dict(shipped.state_dict())
+    model.load_state_dict(shipped.state_dict())
     model.eval()
     base.eval()
     b = SceneDataset(samples_for("clevr1to8_keep"), split="test").batch(list(range(16)))
