@@ -531,3 +531,17 @@ def test_reanchor_fills_empty_slots_and_leaves_the_others():
     for bad in ({"reanchor_steps": 1}, {"reanchor_steps": 1, "anchor": True}, {"reanchor_steps": -1, "anchor": True, "refine_passes": 1}):
         with pytest.raises(ValueError, match="reanchor_steps"):
             ModelConfig(**bad)
+
+
+def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
+    """``scripts/set_refine_passes.py --reanchor`` on a model without anchors: one line, exit status non-zero, nothing
+    written."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "set_refine_passes.py"
+    r = subprocess.run([sys.executable, str(script), "clevr3", "2", str(tmp_path / "out"), "--reanchor", "2"],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "--reanchor needs an anchored model" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()

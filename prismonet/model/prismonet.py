@@ -306,7 +306,7 @@ class PriSMONet(nn.Module):
         new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
         if only is not None:
             before = params.active if params.active is not None else torch.ones_like(only)
-            new.active = (before & ~only) | (new.active if new.active is not None else only)
+            new.active = (before & ~only) | new.active  # the subjects' activity after the pass, the others' as before
         keep_logit = split_keep(delta, self.cfg.refiner_keep)[1]
         obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
