@@ -3,7 +3,9 @@
     python3 scripts/set_refine_passes.py runs/clevr3_glimpse 2 runs/clevr3_glimpse_2pass
     python3 scripts/set_refine_passes.py runs/s48/a18_keep_fit 2 runs/s48/a18_keep_re2 --reanchor 2   # anchored models
 
-``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: anchored steps after refinement, into empty slots).
+``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: anchored steps after refinement, into empty slots);
+``--reanchor-keep X`` sets ``reanchor_keep_logit``, the keep logit a re-anchored slot must beat (``none``: never
+dropped).
 
 The copy's record keeps the source's and notes the change (``refine_passes_from``); the passes were chosen on
 the validation split (EVALUATION.md, "Session 46").
@@ -26,6 +28,9 @@ def main() -> None:
     ap.add_argument("out", help="new run folder")
     ap.add_argument("--reanchor", type=int, default=None, metavar="N",
                     help="also set reanchor_steps to N (an anchored model: N more anchored steps after refinement)")
+    ap.add_argument("--reanchor-keep", default=None, metavar="X",
+                    help="also set reanchor_keep_logit: a re-anchored slot is dropped where its keep logit is <= X "
+                         "('none': never dropped)")
     args = ap.parse_args()
     model, info = load_model(args.model)
     if not model.cfg.refine_passes or args.passes < 1:
@@ -35,13 +40,24 @@ def main() -> None:
         if not model.cfg.anchor or args.reanchor < 0:
             raise SystemExit(f"{args.model}: --reanchor needs an anchored model and N >= 0 (anchor {model.cfg.anchor}, asked {args.reanchor})")
         fields["reanchor_steps"] = args.reanchor
-    new = PriSMONet(replace(model.cfg, **fields), prior=model.prior)
+    if args.reanchor_keep is not None:
+        try:
+            fields["reanchor_keep_logit"] = None if args.reanchor_keep.lower() == "none" else float(args.reanchor_keep)
+        except ValueError:
+            raise SystemExit(f"--reanchor-keep: expected a number or 'none', got {args.reanchor_keep!r}") from None
+    try:
+        cfg = replace(model.cfg, **fields)
+    except ValueError as e:
+        raise SystemExit(f"{args.model}: {e}") from None
+    new = PriSMONet(cfg, prior=model.prior)
     new.load_state_dict(model.state_dict())
     Path(args.out).mkdir(parents=True, exist_ok=True)
     record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
-    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": {"source": str(args.model), "passes": model.cfg.refine_passes, "reanchor_steps": model.cfg.reanchor_steps}})
+    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": {"source": str(args.model), "passes": model.cfg.refine_passes, "reanchor_steps": model.cfg.reanchor_steps,
+                                                                                   "reanchor_keep_logit": model.cfg.reanchor_keep_logit}})
     print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes"
-          + ("" if args.reanchor is None else f", reanchor_steps {model.cfg.reanchor_steps} -> {args.reanchor}"))
+          + ("" if args.reanchor is None else f", reanchor_steps {model.cfg.reanchor_steps} -> {args.reanchor}")
+          + ("" if args.reanchor_keep is None else f", reanchor_keep_logit {model.cfg.reanchor_keep_logit} -> {cfg.reanchor_keep_logit}"))
 
 
 if __name__ == "__main__":

@@ -81,6 +81,21 @@ def test_keep_logit_drops_slots():
     assert kept.active.tolist() == [[False, True]] and float(kept.position[0, 0, 0]) == 0.0
 
 
+def test_keep_bar_moves():
+    """``keep_above``: a slot is kept where its keep logit is above the bar (0 by default); ``None`` keeps every
+    active slot. Latents move the same whatever the bar."""
+    p = two_slots()
+    p.active = torch.ones(1, 2, dtype=torch.bool)
+    d = torch.zeros(2, 13)
+    d[:, 0] = 0.1
+    d[0, -1], d[1, -1] = -1.0, -3.0
+    bars = {0.0: [False, False], -2.0: [True, False], -3.0: [True, False], -3.5: [True, True], None: [True, True]}
+    for bar, want in bars.items():
+        new = apply_correction(p, d, torch.ones(3), (0.25, 0.9), keep=True, keep_above=bar)
+        assert new.active[0].tolist() == want, bar
+        assert new.position[0, :, 0].tolist() == pytest.approx([0.1, 1.1])
+
+
 def test_correction_gradcheck():
     p = two_slots(torch.float64)
     d = torch.randn(2, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 0.3
@@ -531,6 +546,38 @@ def test_reanchor_fills_empty_slots_and_leaves_the_others():
     for bad in ({"reanchor_steps": 1}, {"reanchor_steps": 1, "anchor": True}, {"reanchor_steps": -1, "anchor": True, "refine_passes": 1}):
         with pytest.raises(ValueError, match="reanchor_steps"):
             ModelConfig(**bad)
+
+
+def test_reanchor_keep_bar_keeps_more_new_slots_only():
+    """``reanchor_keep_logit``: a lower bar for the re-anchored slots keeps a superset of them (``None``: every one),
+    and never changes the encoder's own slots, their activity or their latents."""
+    from dataclasses import replace
+
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+
+    shipped, _ = load_model("clevr1to8_keep")
+    b = SceneDataset(samples_for("clevr1to8_keep"), split="test").batch(list(range(16)))
+    got = {}
+    for bar in (0.0, -4.0, None, "off"):
+        cfg = replace(shipped.cfg, reanchor_steps=0) if bar == "off" else replace(shipped.cfg, reanchor_steps=2, reanchor_keep_logit=bar)
+        m = PriSMONet(cfg, prior=shipped.prior)
+        m.load_state_dict(shipped.state_dict())
+        with torch.no_grad():
+            got[bar] = m.eval()(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params
+    own = got["off"].active
+    for bar in (0.0, -4.0, None):
+        assert torch.equal(got[bar].active & own, own)
+        for name in ("position", "scale", "z_tex"):
+            assert torch.equal(getattr(got[bar], name)[own], getattr(got["off"], name)[own])
+    new = {bar: got[bar].active & ~own for bar in (0.0, -4.0, None)}
+    assert bool((new[-4.0] | ~new[0.0]).all()) and bool((new[None] | ~new[-4.0]).all())  # supersets
+    assert int(new[None].sum()) > int(new[0.0].sum())  # the bar matters on these scenes
+    with pytest.raises(ValueError, match="reanchor_keep_logit"):
+        ModelConfig(reanchor_keep_logit=float("-inf"))
 
 
 def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 INPUT_MODES = ("I", "I+dI", "I+M", "I+dI+M")
@@ -91,6 +92,10 @@ class ModelConfig:
     more anchored encoder steps on what the *refined* slots leave unexplained, each into the scene's first empty slot,
     then the refiner's passes on the new slots alone. The encoder stopped on a composition that the refiner then
     corrected; a part it had given up on (a failed region) may now stand alone. 0: off. Training ignores it."""
+    reanchor_keep_logit: float | None = 0.0
+    """With ``reanchor_steps`` and ``refiner_keep``: a re-anchored slot is dropped where its keep logit is at or below
+    this (the encoder's own slots: at or below 0). The keep output was fitted on the encoder's slots, and drops most
+    re-anchored ones; a lower bar keeps more of them. ``None``: re-anchored slots are never dropped."""
 
     def __post_init__(self) -> None:
         if self.pose_frame not in ("world", "camera"):
@@ -109,6 +114,8 @@ class ModelConfig:
             raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
         if self.reanchor_steps < 0 or (self.reanchor_steps and not (self.anchor and self.refine_passes)):
             raise ValueError(f"reanchor_steps must be >= 0 and needs anchor and refine_passes >= 1, got {self.reanchor_steps}")
+        if self.reanchor_keep_logit is not None and not math.isfinite(self.reanchor_keep_logit):
+            raise ValueError(f"reanchor_keep_logit must be a finite number or None (never drop), got {self.reanchor_keep_logit}")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):
             raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
         if not 0.0 <= self.refiner_glimpse <= 1.0:

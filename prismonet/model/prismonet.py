@@ -296,14 +296,16 @@ class PriSMONet(nn.Module):
     def _refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                      only: torch.Tensor | None = None) -> ModelOutput:
         """One refinement pass over the active slots of ``out``, or over the slots ``only (B, N)`` bool alone (the
-        others keep their latents and their activity), then a render of every active slot."""
+        others keep their latents and their activity; the re-anchored slots: their keep bar is
+        ``cfg.reanchor_keep_logit``), then a render of every active slot."""
         H, W = image.shape[-2:]
         params = out.latents.params
         views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
                                              K, T_world_cam)
         delta = self._refiner_delta(views, latents, params.active if only is None else only)
         subject = params if only is None else replace(params, active=only)
-        new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep)
+        keep_above = 0.0 if only is None else self.cfg.reanchor_keep_logit
+        new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above)
         if only is not None:
             before = params.active if params.active is not None else torch.ones_like(only)
             new.active = (before & ~only) | new.active  # the subjects' activity after the pass, the others' as before

@@ -138,12 +138,14 @@ def split_keep(delta: torch.Tensor, keep: bool) -> tuple[torch.Tensor, torch.Ten
 
 
 def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.Tensor,
-                     scale_range: tuple[float, float], keep: bool = False) -> SceneParams:
+                     scale_range: tuple[float, float], keep: bool = False,
+                     keep_above: float | None = 0.0) -> SceneParams:
     """``params`` moved by the refiner's raw output ``delta (B*N, 5 + D_tex [+ D_sh] [+ 1])``: position + ``pos_scale``
     times the first three, yaw turned by ``MAX_TURN tanh``, scale times ``exp(MAX_LOG_SCALE tanh)``
     (kept in ``scale_range``), texture latent plus the next ``D_tex``, and shape latent plus the next ``D_sh``
     when there are that many more. With ``keep`` the last value is a keep logit: a slot whose logit is not
-    positive becomes inactive. Inactive slots keep their latents."""
+    above ``keep_above`` (default 0) becomes inactive; ``keep_above=None`` drops none. Inactive slots keep their
+    latents."""
     B, N = params.scale.shape
     delta, keep_logit = split_keep(delta, keep)
     d = delta.reshape(B, N, -1)
@@ -160,8 +162,8 @@ def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.
     lo, hi = scale_range
     scale = (params.scale * torch.exp(MAX_LOG_SCALE * torch.tanh(d[..., 4]))).clamp(lo, hi)
     active = params.active
-    if keep_logit is not None:
-        kept = keep_logit.reshape(B, N) > 0
+    if keep_logit is not None and keep_above is not None:
+        kept = keep_logit.reshape(B, N) > keep_above
         active = kept if active is None else active & kept
     new = SceneParams(z_sh=z_sh, z_tex=params.z_tex + d[..., 5:tex_end], position=params.position + pos_scale * d[..., :3],
                       cos_sin=cos_sin, scale=scale, axis=params.axis, active=active)
