@@ -291,3 +291,55 @@ def test_randomize_range_overrides_one_draw(tmp_path):
     a, b = (SceneDataset(tmp_path / f, "test").batch(range(4)) for f in ("1", "2"))
     assert torch.allclose(b.K[:, 0, 0], 2 * a.K[:, 0, 0], rtol=1e-6)
     assert torch.equal(a.T_world_cam, b.T_world_cam) and torch.equal(a.obj_position, b.obj_position)
+
+
+def test_shadow_directions_are_the_light_and_a_cone_around_it():
+    from prismonet.data.raycast_gt import SHADOW_RAYS, SHADOW_SPREAD_DEG, shadow_directions
+
+    light = np.array([0.35, -0.55, 1.0]) / np.linalg.norm([0.35, -0.55, 1.0])
+    dirs = shadow_directions(light)
+    assert dirs.shape == (SHADOW_RAYS, 3) and np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+    assert np.allclose(dirs[0], light)
+    assert np.allclose(np.degrees(np.arccos(dirs[1:] @ light)), SHADOW_SPREAD_DEG)
+    assert np.allclose(dirs[1:].mean(0) / np.linalg.norm(dirs[1:].mean(0)), light)  # evenly around it
+
+
+def test_a_sphere_casts_its_shadow_where_the_light_line_meets_the_ground():
+    """A sphere of radius 0.5 at (0, 0, 1) under a light along (1, 0, 1): the ground point (-1, 0, 0) lies on the
+    line from the centre away from the light (fully shadowed), (2, 0, 0) is lit, and between the two a point whose
+    central shadow ray passes at the rim is partly shadowed."""
+    import open3d as o3d
+
+    from prismonet.data.raycast_gt import shadow_fraction
+
+    spec = SceneSpec((ObjectSpec(0, 0, 1, 0.5, (0.0, 0.0, 1.0), 0.0),), clevr_camera(CFG), 0.0, CFG.ground_color)
+    v, f = spec.objects[0].world_mesh()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    light = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    # the central ray from (x, 0, 0) passes the centre at distance |x + 1| / sqrt(2): at the rim for x = -1 + 0.5 sqrt(2)
+    xs = np.array([-1.0, -1.0 + 0.5 * np.sqrt(2.0), 2.0])
+    pts = np.stack([xs, np.zeros(3), np.zeros(3)], 1)
+    frac = shadow_fraction(scene, pts, np.tile([0.0, 0.0, 1.0], (3, 1)), light)
+    assert frac[0] == 1.0 and frac[2] == 0.0 and 0.0 < frac[1] < 1.0
+
+
+def test_cast_shadows_darken_only_and_keep_the_scene():
+    """With ``cast_shadows`` the same scene has the same depth and instances; no pixel gets brighter; shadowed ground
+    pixels lose exactly the light's share ``diffuse cos / (ambient + diffuse cos)`` where fully blocked."""
+    from dataclasses import replace
+
+    cfg = ClevrConfig(num_objects=4)
+    spec = sample_scene(np.random.default_rng(3), cfg)
+    plain, shadowed = render_scene(spec, cfg), render_scene(spec, replace(cfg, cast_shadows=True))
+    assert np.array_equal(plain.depth, shadowed.depth) and np.array_equal(plain.instance, shadowed.instance)
+    assert np.all(shadowed.rgb.astype(int) <= plain.rgb.astype(int))
+    ground = plain.instance == 0
+    darker = ground & (shadowed.rgb.sum(-1) < plain.rgb.sum(-1))
+    assert darker.sum() > 20  # a shadow on the ground in view
+    light = np.asarray(cfg.light_dir) / np.linalg.norm(cfg.light_dir)
+    share = cfg.diffuse * light[2] / (cfg.ambient + cfg.diffuse * light[2])
+    umbra = np.asarray(cfg.ground_color) * (1.0 - share)
+    deepest = shadowed.rgb[darker].astype(float).min(0)
+    assert np.allclose(deepest, np.rint(umbra), atol=1.0)
+    assert ClevrConfig(**{**cfg.to_dict(), "cast_shadows": True}).cast_shadows  # read back from a dataset's meta

@@ -58,7 +58,7 @@ def cmd_clevr(args) -> int:
 
     cfg = ClevrConfig(num_objects=args.objects, min_objects=args.min_objects, area_half=args.area, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
                       random_height=args.random_height, full_rotation=args.full_rotation, camera_jitter=args.camera_jitter,
-                      shapes=args.shapes, shape_split=args.shape_split, randomize=_randomize(args))
+                      shapes=args.shapes, shape_split=args.shape_split, randomize=_randomize(args), cast_shadows=args.shadows)
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
     print(f"wrote {n} scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s ({n / meta['seconds']:.0f} scenes/s)")
@@ -166,6 +166,8 @@ def _add_clevr(dsub) -> None:
     p.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
     p.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
     p.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
+    p.add_argument("--shadows", action="store_true", help="objects cast soft shadows from the light (beyond the paper; "
+                                                           "the same scenes as without)")
     p.add_argument("--randomize", action="store_true",
                    help="per scene: ground colour, light direction and ambient level, camera distance, elevation, heading, "
                         "look-at point and focal length (RandomizeConfig's ranges; for the real-tabletop model)")

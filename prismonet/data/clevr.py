@@ -150,6 +150,9 @@ class ClevrConfig:
     camera_jitter: float = 0.0
     """Per-axis uniform jitter of the camera position, U(-j, j) (CLEVR uses 0.5)."""
     camera_eye: tuple[float, float, float] = CLEVR_CAMERA_EYE
+    cast_shadows: bool = False
+    """Beyond the paper (real photos have them): objects cast soft shadows from the directional light, on the ground
+    and on each other (``prismonet.data.raycast_gt``). The scenes drawn are the same with or without."""
     towers: TowerConfig | None = None
     """Block towers instead of scattered objects (``prismonet.data.towers``); see ``BLOCK_TOWERS``."""
     randomize: RandomizeConfig | None = None

@@ -2,8 +2,8 @@
 
 This is deliberately independent of the project's differentiable SDF renderer, so that a bug in
 that renderer cannot cancel out when its output is evaluated against this ground truth.
-Outputs: RGB (Lambertian, no shadows, flat ground), depth as camera z clipped at ``far_depth``,
-and an instance-id mask (0 = ground, k = k-th object of the scene, 1-based).
+Outputs: RGB (Lambertian, flat ground; cast shadows with ``ClevrConfig.cast_shadows``), depth as camera z
+clipped at ``far_depth``, and an instance-id mask (0 = ground, k = k-th object of the scene, 1-based).
 """
 
 from __future__ import annotations
@@ -33,6 +33,37 @@ def world_rays(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
     d = d_cam @ T[:3, :3].T
     o = np.broadcast_to(T[:3, 3], d.shape)
     return o, d
+
+
+SHADOW_RAYS = 8
+"""Shadow rays per pixel: the light's direction and seven more on a cone around it (a soft edge)."""
+SHADOW_SPREAD_DEG = 4.0
+"""Half-angle of that cone: the light's apparent radius."""
+
+
+def shadow_directions(light: np.ndarray, rays: int = SHADOW_RAYS, spread_deg: float = SHADOW_SPREAD_DEG) -> np.ndarray:
+    """``(rays, 3)`` unit directions: ``light`` (unit) itself and ``rays - 1`` more at ``spread_deg`` from it, evenly
+    around it (a fixed pattern: the same scene always casts the same shadow)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(light[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(light, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(light, u)
+    a = np.radians(spread_deg)
+    phi = 2 * np.pi * np.arange(rays - 1) / max(rays - 1, 1)
+    ring = np.cos(a) * light + np.sin(a) * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v)
+    return np.concatenate([light[None], ring], 0)
+
+
+def shadow_fraction(scene, points: np.ndarray, normals: np.ndarray, light: np.ndarray, nthreads: int = 0) -> np.ndarray:
+    """``(n,)`` share of the shadow rays from surface ``points (n, 3)`` (unit ``normals (n, 3)``) towards ``light``
+    that an object of open3d ``scene`` blocks: 0 lit, 1 in full shadow."""
+    import open3d as o3d
+
+    dirs = shadow_directions(light)
+    start = points + 1e-3 * normals  # off the surface, so that a ray does not hit where it starts
+    rays = np.concatenate([np.repeat(start[None], len(dirs), 0), np.repeat(dirs[:, None], len(points), 1)], -1)
+    blocked = scene.test_occlusions(o3d.core.Tensor(rays.reshape(-1, 6).astype(np.float32)), nthreads=nthreads).numpy()
+    return blocked.reshape(len(dirs), len(points)).mean(0)
 
 
 def _surface_colors(spec: SceneSpec, geom: np.ndarray, prim: np.ndarray) -> np.ndarray:
@@ -97,6 +128,23 @@ def render_scene(
     light = light / np.linalg.norm(light)
     shade = ambient + diffuse * np.clip(normals @ light, 0.0, None)
     rgb = np.broadcast_to(np.asarray(spec.ground_color, dtype=np.float64), (H * W, 3)).copy()
+    if cfg.cast_shadows and len(spec.objects):
+        # A blocked light takes its direct share away: on an object the diffuse term; on the (unshaded) ground the
+        # share that term would have if the ground were lit the same way, diffuse cos / (ambient + diffuse cos).
+        ground = ~fg & np.isfinite(t_ground)
+        surf = fg | ground
+        up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), normals.shape)
+        n_surf = np.where(fg[:, None], normals, up)
+        t_surf = np.where(fg, t_obj, t_ground)
+        facing = surf & ((n_surf @ light) > 0)
+        frac = np.zeros(H * W)
+        idx = np.nonzero(facing)[0]
+        if len(idx):
+            frac[idx] = shadow_fraction(scene, o[idx] + t_surf[idx, None] * d[idx], n_surf[idx], light, nthreads)
+        shade = shade - np.where(fg, diffuse * np.clip(normals @ light, 0.0, None) * frac, 0.0)
+        cos_g = max(float(light[2]), 0.0)
+        share = diffuse * cos_g / max(ambient + diffuse * cos_g, 1e-9)
+        rgb[ground] *= (1.0 - share * frac[ground])[:, None]
     if fg.any():
         prim = hit["primitive_ids"].numpy().astype(np.int64)
         rgb[fg] = _surface_colors(spec, geom[fg], prim[fg]) * shade[fg, None]
