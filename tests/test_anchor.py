@@ -57,6 +57,29 @@ def test_find_anchors_on_a_hand_made_image():
     assert not find_anchors(image, image + 0.2, AnchorRule(color_tol=0.25)).found.any()
 
 
+def test_a_shadow_counts_as_explained_with_shade_min():
+    """``AnchorRule.shade_min``: ground darkened evenly (a shadow, k = 0.55) is explained; a red object, a grey patch
+    darker than the least factor (k = 0.3) and a patch darkened unevenly are not. Off (the default): all four are
+    unexplained."""
+    ground = torch.tensor([0.6, 0.55, 0.5])
+    comp = ground.view(1, 3, 1, 1).repeat(1, 1, 8, 8)
+    image = comp.clone()
+    image[0, :, 0:2, :] = (0.55 * ground).view(3, 1, 1)  # shadow
+    image[0, :, 2:4, :] = torch.tensor([0.9, 0.1, 0.1]).view(3, 1, 1)  # red object
+    image[0, :, 4:6, :] = (0.3 * ground).view(3, 1, 1)  # darker than any shadow allowed
+    image[0, :, 6:8, :] = (ground * torch.tensor([0.6, 0.3, 0.3])).view(3, 1, 1)  # uneven: a reddish object
+    rows = lambda m: [bool(m[0, 2 * i:2 * i + 2].all()) for i in range(4)]  # noqa: E731
+    assert rows(AnchorRule().unexplained(image, comp)) == [True, True, True, True]
+    assert rows(AnchorRule(shade_min=0.5, shade_tol=0.03).unexplained(image, comp)) == [False, True, True, True]
+    assert rows(AnchorRule(shade_min=0.25).unexplained(image, comp)) == [False, True, False, True]
+    with pytest.raises(ValueError, match="shade_min"):
+        AnchorRule(shade_min=1.0)
+    with pytest.raises(ValueError, match="anchor_shade_min"):
+        ModelConfig(anchor=True, anchor_shade_min=0.0)
+    model = PriSMONet(ModelConfig(anchor=True, anchor_shade_min=0.5))
+    assert model.anchor_rule().shade_min == 0.5 and model.anchor_rule().shade_tol == 0.03
+
+
 def test_a_component_explained_in_vain_is_not_proposed_again():
     image = torch.tensor(GROUND).view(1, 3, 1, 1).repeat(2, 1, 32, 32)
     image[:, :, 4:12, 4:12] = torch.tensor([0.9, 0.1, 0.1]).view(3, 1, 1)  # 64 px, the largest

@@ -87,6 +87,12 @@ class ModelConfig:
     """With ``anchor``: the largest per-channel colour difference of an explained pixel."""
     anchor_min_area: int = 20
     """With ``anchor``: the fewest pixels of an unexplained part worth a slot."""
+    anchor_shade_min: float | None = None
+    """With ``anchor`` (inference; beyond the paper): a pixel the slots miss in colour still counts as explained where
+    it is their composition darkened evenly by a factor of at least this (a cast shadow: ``AnchorRule.shade_min``).
+    None: off, as trained."""
+    anchor_shade_tol: float = 0.03
+    """With ``anchor_shade_min``: how far each channel's darkening may stray from their mean."""
     reanchor_steps: int = 0
     """With ``anchor`` and a refiner, at inference (beyond the paper): after the refinement passes, up to this many
     more anchored encoder steps on what the *refined* slots leave unexplained, each into the scene's first empty slot,
@@ -110,6 +116,8 @@ class ModelConfig:
             raise ValueError(f"num_slots must be at most {MAX_SLOTS} and image_size at most {MAX_IMAGE_SIDE}, got {self.num_slots}, {self.image_size}")
         if self.anchor and self.presence:
             raise ValueError("anchor and presence are two ways of leaving slots empty: choose one")
+        if self.anchor_shade_min is not None and not (0 < self.anchor_shade_min < 0.97 and self.anchor_shade_tol > 0):
+            raise ValueError(f"anchor_shade_min must be in (0, 0.97) and anchor_shade_tol > 0, got {self.anchor_shade_min} and {self.anchor_shade_tol}")
         if self.anchor_min_area < 1 or not self.anchor_color_tol > 0:
             raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
         if self.reanchor_steps < 0 or (self.reanchor_steps and not (self.anchor and self.refine_passes)):

@@ -104,7 +104,8 @@ class PriSMONet(nn.Module):
                               far_depth=self.cfg.far_depth, soft_mask_tau=self.cfg.soft_mask_tau, box=self.prior.bounds)
 
     def anchor_rule(self) -> AnchorRule:
-        return AnchorRule(color_tol=self.cfg.anchor_color_tol, min_area=self.cfg.anchor_min_area)
+        return AnchorRule(color_tol=self.cfg.anchor_color_tol, min_area=self.cfg.anchor_min_area,
+                          shade_min=self.cfg.anchor_shade_min, shade_tol=self.cfg.anchor_shade_tol)
 
     def decode_latent(self, raw: torch.Tensor, K: torch.Tensor | None = None, T_world_cam: torch.Tensor | None = None,
                       ground_z: torch.Tensor | None = None, anchor_uv: torch.Tensor | None = None) -> SceneParams:

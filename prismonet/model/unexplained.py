@@ -67,6 +67,20 @@ def largest_region(unexplained: torch.Tensor, open_pixels: int, min_area: int,
     return region, found
 
 
+SHADE_MAX = 0.97
+"""The least darkening read as a shadow (``AnchorRule.shade_min``): 3 %."""
+
+
+def shaded(image: torch.Tensor, comp_image: torch.Tensor, k_min: float, tol: float) -> torch.Tensor:
+    """``(B, H, W)`` bool: where ``image (B, 3, H, W)`` is ``comp_image`` darkened by one factor ``k`` in ``[k_min,
+    SHADE_MAX]``: every channel's ratio image / composition within ``tol`` of the channels' mean ratio, the composition
+    at least 0.15 in some channel (a ratio to black means nothing)."""
+    ratio = image / comp_image.clamp_min(0.05)
+    k = ratio.mean(1)
+    same = (ratio - k[:, None]).abs().amax(1) < tol
+    return same & (k >= k_min) & (k <= SHADE_MAX) & (comp_image.amax(1) > 0.15)
+
+
 @dataclass(frozen=True)
 class AnchorRule:
     """What counts as unexplained, and how large a part must be to be worth a slot."""
@@ -81,15 +95,28 @@ class AnchorRule:
     min_gain: int = 10
     """A slot that leaves all but fewer than this many pixels of its anchor's component unexplained has failed
     there: the component is not proposed again (``failed``), so that the next step looks elsewhere."""
+    shade_min: float | None = None
+    """With a value (beyond the paper, for light with cast shadows): a pixel the composition misses is still explained
+    where the input is the composition darkened by one factor ``k`` in ``[shade_min, SHADE_MAX]`` in every channel
+    (each channel's ratio within ``shade_tol`` of their mean; the composition not black): a shadow, which the
+    renderer does not cast. The price: a dark object of the ground's own hue reads as a shadow."""
+    shade_tol: float = 0.03
 
     def __post_init__(self) -> None:
         if not self.color_tol > 0 or self.open < 0 or self.min_area < 1 or self.min_gain < 1:
             raise ValueError(f"anchor rule: color_tol must be > 0, open >= 0, min_area >= 1 and min_gain >= 1, "
                              f"got {self.color_tol}, {self.open}, {self.min_area} and {self.min_gain}")
+        if self.shade_min is not None and not (0 < self.shade_min < SHADE_MAX and self.shade_tol > 0):
+            raise ValueError(f"anchor rule: shade_min must be in (0, {SHADE_MAX}) and shade_tol > 0, "
+                             f"got {self.shade_min} and {self.shade_tol}")
 
     def unexplained(self, image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
-        """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses."""
-        return color_unexplained(image, comp_image, self.color_tol)
+        """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses (shadows excepted with
+        ``shade_min``)."""
+        bad = color_unexplained(image, comp_image, self.color_tol)
+        if self.shade_min is None:
+            return bad
+        return bad & ~shaded(image, comp_image, self.shade_min, self.shade_tol)
 
     def failed(self, anchors: "Anchors", image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
         """``(B, H, W)`` bool: the components of ``anchors`` that the composition with the new slot,
