@@ -5,7 +5,10 @@
 
 ``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: anchored steps after refinement, into empty slots);
 ``--reanchor-keep X`` sets ``reanchor_keep_logit``, the keep logit a re-anchored slot must beat (``none``: never
-dropped).
+dropped); ``--anchor-shade K`` sets ``anchor_shade_min``, the least even darkening the anchor rule reads as a cast
+shadow (``none``: off, as trained).
+
+    python3 scripts/set_refine_passes.py tabletop_keep 2 runs/tabletop_keep_noshade --anchor-shade none   # session 48's
 
 The copy's record keeps the source's and notes the change (``refine_passes_from``); the passes were chosen on
 the validation split (EVALUATION.md, "Session 46").
@@ -31,6 +34,9 @@ def main() -> None:
     ap.add_argument("--reanchor-keep", default=None, metavar="X",
                     help="also set reanchor_keep_logit: a re-anchored slot is dropped where its keep logit is <= X "
                          "('none': never dropped)")
+    ap.add_argument("--anchor-shade", default=None, metavar="K",
+                    help="also set anchor_shade_min: an evenly darkened composition by a factor >= K counts as a shadow "
+                         "('none': off)")
     args = ap.parse_args()
     model, info = load_model(args.model)
     if not model.cfg.refine_passes or args.passes < 1:
@@ -45,6 +51,13 @@ def main() -> None:
             fields["reanchor_keep_logit"] = None if args.reanchor_keep.lower() == "none" else float(args.reanchor_keep)
         except ValueError:
             raise SystemExit(f"--reanchor-keep: expected a number or 'none', got {args.reanchor_keep!r}") from None
+    if args.anchor_shade is not None:
+        if not model.cfg.anchor:
+            raise SystemExit(f"{args.model}: --anchor-shade needs an anchored model")
+        try:
+            fields["anchor_shade_min"] = None if args.anchor_shade.lower() == "none" else float(args.anchor_shade)
+        except ValueError:
+            raise SystemExit(f"--anchor-shade: expected a number or 'none', got {args.anchor_shade!r}") from None
     try:
         cfg = replace(model.cfg, **fields)
     except ValueError as e:
@@ -54,10 +67,12 @@ def main() -> None:
     Path(args.out).mkdir(parents=True, exist_ok=True)
     record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
     save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": {"source": str(args.model), "passes": model.cfg.refine_passes, "reanchor_steps": model.cfg.reanchor_steps,
-                                                                                   "reanchor_keep_logit": model.cfg.reanchor_keep_logit}})
+                                                                                   "reanchor_keep_logit": model.cfg.reanchor_keep_logit,
+                                                                                   "anchor_shade_min": model.cfg.anchor_shade_min}})
     print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes"
           + ("" if args.reanchor is None else f", reanchor_steps {model.cfg.reanchor_steps} -> {args.reanchor}")
-          + ("" if args.reanchor_keep is None else f", reanchor_keep_logit {model.cfg.reanchor_keep_logit} -> {cfg.reanchor_keep_logit}"))
+          + ("" if args.reanchor_keep is None else f", reanchor_keep_logit {model.cfg.reanchor_keep_logit} -> {cfg.reanchor_keep_logit}")
+          + ("" if args.anchor_shade is None else f", anchor_shade_min {model.cfg.anchor_shade_min} -> {cfg.anchor_shade_min}"))
 
 
 if __name__ == "__main__":

@@ -24,8 +24,10 @@ MEASURED = {  # the 16 shipped scenes: feed-forward AP0.5, depth RMSE; AP0.5 wit
     # re-anchored slot is dropped only where its keep logit is at or below -4 (reanchor_keep_logit; at 0: 0.964, 0.140)
     "clevr1to8_keep": {"AP0.5": 0.956, "depth_RMSE": 0.139, "pruned": 0.956, "frame": "world", "stage": "train"},
     "clevr1to8_anchor8k": {"AP0.5": 0.873, "depth_RMSE": 0.131, "pruned": 0.878, "frame": "world", "stage": "train"},
-    # session 48: tabletop_anchor with a glimpse refiner that keeps or drops slots, two passes, two re-anchoring steps
-    "tabletop_keep": {"AP0.5": 0.991, "depth_RMSE": 0.152, "pruned": 1.0, "frame": "camera", "stage": "train"},
+    # session 48: tabletop_anchor with a glimpse refiner that keeps or drops slots, two passes, two re-anchoring steps;
+    # since session 49 its anchor rule reads an evenly darkened composition as a shadow (anchor_shade_min 0.5; without:
+    # AP0.5 0.991, depth RMSE 0.152, pruned 1.0)
+    "tabletop_keep": {"AP0.5": 0.981, "depth_RMSE": 0.153, "pruned": 0.990, "frame": "camera", "stage": "train"},
     "tabletop_anchor": {"AP0.5": 0.872, "depth_RMSE": 0.171, "pruned": 0.804, "frame": "camera", "stage": "train"},  # session 45
     "tabletop": {"AP0.5": 0.563, "depth_RMSE": 0.228, "pruned": 0.725, "frame": "camera", "stage": "train"},
 }

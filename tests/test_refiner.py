@@ -592,3 +592,9 @@ def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode != 0 and "--reanchor needs an anchored model" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+    for name, extra, says in (("clevr3", ["--anchor-shade", "0.5"], "--anchor-shade needs an anchored model"),
+                              ("tabletop_keep", ["--anchor-shade", "1.5"], "anchor_shade_min must be in"),
+                              ("tabletop_keep", ["--reanchor-keep", "x"], "--reanchor-keep: expected a number")):
+        r = subprocess.run([sys.executable, str(script), name, "2", str(tmp_path / "out"), *extra], capture_output=True, text=True)
+        assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "out").exists()
