@@ -47,17 +47,11 @@ def main() -> None:
             raise SystemExit(f"{args.model}: --reanchor needs an anchored model and N >= 0 (anchor {model.cfg.anchor}, asked {args.reanchor})")
         fields["reanchor_steps"] = args.reanchor
     if args.reanchor_keep is not None:
-        try:
-            fields["reanchor_keep_logit"] = None if args.reanchor_keep.lower() == "none" else float(args.reanchor_keep)
-        except ValueError:
-            raise SystemExit(f"--reanchor-keep: expected a number or 'none', got {args.reanchor_keep!r}") from None
+        fields["reanchor_keep_logit"] = number_or_none("--reanchor-keep", args.reanchor_keep)
     if args.anchor_shade is not None:
         if not model.cfg.anchor:
             raise SystemExit(f"{args.model}: --anchor-shade needs an anchored model")
-        try:
-            fields["anchor_shade_min"] = None if args.anchor_shade.lower() == "none" else float(args.anchor_shade)
-        except ValueError:
-            raise SystemExit(f"--anchor-shade: expected a number or 'none', got {args.anchor_shade!r}") from None
+        fields["anchor_shade_min"] = number_or_none("--anchor-shade", args.anchor_shade)
     try:
         cfg = replace(model.cfg, **fields)
     except ValueError as e:
@@ -66,13 +60,22 @@ def main() -> None:
     new.load_state_dict(model.state_dict())
     Path(args.out).mkdir(parents=True, exist_ok=True)
     record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
-    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": {"source": str(args.model), "passes": model.cfg.refine_passes, "reanchor_steps": model.cfg.reanchor_steps,
-                                                                                   "reanchor_keep_logit": model.cfg.reanchor_keep_logit,
-                                                                                   "anchor_shade_min": model.cfg.anchor_shade_min}})
+    before = {k: getattr(model.cfg, k) for k in fields}  # the source's values of what changed
+    save_model(new.eval(), Path(args.out) / "model",
+               {**record, "refine_passes_from": {"source": str(args.model), "passes": before.pop("refine_passes"), **before}})
+    changes = ", ".join(f"{k} {getattr(model.cfg, k)} -> {v}" for k, v in fields.items() if k != "refine_passes")
     print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes"
-          + ("" if args.reanchor is None else f", reanchor_steps {model.cfg.reanchor_steps} -> {args.reanchor}")
-          + ("" if args.reanchor_keep is None else f", reanchor_keep_logit {model.cfg.reanchor_keep_logit} -> {cfg.reanchor_keep_logit}")
-          + ("" if args.anchor_shade is None else f", anchor_shade_min {model.cfg.anchor_shade_min} -> {cfg.anchor_shade_min}"))
+          + (f", {changes}" if changes else ""))
+
+
+def number_or_none(flag: str, text: str) -> float | None:
+    """A flag's value: a number, or ``none``; anything else ends the script with one line."""
+    if text.lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise SystemExit(f"{flag}: expected a number or 'none', got {text!r}") from None
 
 
 if __name__ == "__main__":

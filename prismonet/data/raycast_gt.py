@@ -126,7 +126,8 @@ def render_scene(
     direction, ambient, diffuse = (cfg.light_dir, cfg.ambient, cfg.diffuse) if spec.light is None else spec.light
     light = np.asarray(direction, dtype=np.float64)
     light = light / np.linalg.norm(light)
-    shade = ambient + diffuse * np.clip(normals @ light, 0.0, None)
+    direct = diffuse * np.clip(normals @ light, 0.0, None)
+    shade = ambient + direct
     rgb = np.broadcast_to(np.asarray(spec.ground_color, dtype=np.float64), (H * W, 3)).copy()
     if cfg.cast_shadows and len(spec.objects):
         # A blocked light takes its direct share away: on an object the diffuse term; on the (unshaded) ground the
@@ -141,7 +142,7 @@ def render_scene(
         idx = np.nonzero(facing)[0]
         if len(idx):
             frac[idx] = shadow_fraction(scene, o[idx] + t_surf[idx, None] * d[idx], n_surf[idx], light, nthreads)
-        shade = shade - np.where(fg, diffuse * np.clip(normals @ light, 0.0, None) * frac, 0.0)
+        shade = shade - np.where(fg, direct * frac, 0.0)
         cos_g = max(float(light[2]), 0.0)
         share = diffuse * cos_g / max(ambient + diffuse * cos_g, 1e-9)
         rgb[ground] *= (1.0 - share * frac[ground])[:, None]

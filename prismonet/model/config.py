@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 
 INPUT_MODES = ("I", "I+dI", "I+M", "I+dI+M")
+SHADE_MAX = 0.97
+"""The least darkening an anchor rule reads as a shadow (``anchor_shade_min``, ``AnchorRule.shade_min``): 3 %."""
 
 
 @dataclass(frozen=True)
@@ -116,8 +118,8 @@ class ModelConfig:
             raise ValueError(f"num_slots must be at most {MAX_SLOTS} and image_size at most {MAX_IMAGE_SIDE}, got {self.num_slots}, {self.image_size}")
         if self.anchor and self.presence:
             raise ValueError("anchor and presence are two ways of leaving slots empty: choose one")
-        if self.anchor_shade_min is not None and not (0 < self.anchor_shade_min < 0.97 and self.anchor_shade_tol > 0):
-            raise ValueError(f"anchor_shade_min must be in (0, 0.97) and anchor_shade_tol > 0, got {self.anchor_shade_min} and {self.anchor_shade_tol}")
+        if self.anchor_shade_min is not None and not (0 < self.anchor_shade_min < SHADE_MAX and self.anchor_shade_tol > 0):
+            raise ValueError(f"anchor_shade_min must be in (0, {SHADE_MAX}) and anchor_shade_tol > 0, got {self.anchor_shade_min} and {self.anchor_shade_tol}")
         if self.anchor_min_area < 1 or not self.anchor_color_tol > 0:
             raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
         if self.reanchor_steps < 0 or (self.reanchor_steps and not (self.anchor and self.refine_passes)):

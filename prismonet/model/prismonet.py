@@ -295,17 +295,16 @@ class PriSMONet(nn.Module):
         return out
 
     def _refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
-                     only: torch.Tensor | None = None) -> ModelOutput:
+                     only: torch.Tensor | None = None, keep_above: float | None = 0.0) -> ModelOutput:
         """One refinement pass over the active slots of ``out``, or over the slots ``only (B, N)`` bool alone (the
-        others keep their latents and their activity; the re-anchored slots: their keep bar is
-        ``cfg.reanchor_keep_logit``), then a render of every active slot."""
+        others keep their latents and their activity), then a render of every active slot. A slot whose keep logit is
+        not above ``keep_above`` is dropped (``apply_correction``)."""
         H, W = image.shape[-2:]
         params = out.latents.params
         views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
                                              K, T_world_cam)
         delta = self._refiner_delta(views, latents, params.active if only is None else only)
         subject = params if only is None else replace(params, active=only)
-        keep_above = 0.0 if only is None else self.cfg.reanchor_keep_logit
         new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above)
         if only is not None:
             before = params.active if params.active is not None else torch.ones_like(only)
@@ -365,7 +364,8 @@ class PriSMONet(nn.Module):
         out = ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit)
         for _ in range(self.cfg.refine_passes):
-            out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active)
+            out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
+                                    keep_above=self.cfg.reanchor_keep_logit)
         return out
 
     def _refiner_delta(self, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from prismonet.model.config import SHADE_MAX
 from prismonet.model.stopping import color_unexplained, erode
 
 
@@ -65,10 +66,6 @@ def largest_region(unexplained: torch.Tensor, open_pixels: int, min_area: int,
         if comp is not None:
             region[b], found[b] = torch.from_numpy(comp), True
     return region, found
-
-
-SHADE_MAX = 0.97
-"""The least darkening read as a shadow (``AnchorRule.shade_min``): 3 %."""
 
 
 def shaded(image: torch.Tensor, comp_image: torch.Tensor, k_min: float, tol: float) -> torch.Tensor:
