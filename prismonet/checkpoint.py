@@ -61,7 +61,7 @@ def save_checkpoint(path: str | Path, tensors: dict[str, torch.Tensor], meta: di
             stale.unlink(missing_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        save_file({k: v.detach().contiguous() for k, v in tensors.items()}, str(tmp), metadata={META_KEY: json.dumps(meta)})
+        save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, str(tmp), metadata={META_KEY: json.dumps(meta)})
         with open(tmp, "rb") as f:  # on disk before it replaces the old file: a power cut leaves one or the other
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -15,7 +15,7 @@ def cmd_train(args) -> int:
     from prismonet.config import load_config
     from prismonet.model.trainer import TrainConfig, train
 
-    cfg = load_config(TrainConfig, args.config, args.set)
+    cfg = load_config(TrainConfig, args.config, args.set + ([f"device={args.device}"] if args.device else []))
     summary = train(cfg, Path(args.out), progress=not args.quiet)
     if summary.get("world_size", 1) == 1 or int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(summary))
@@ -76,6 +76,7 @@ def add_parsers(sub) -> None:
     tr.add_argument("config", help="JSON file of TrainConfig fields (e.g. configs/clevr3.json)")
     tr.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
     tr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. loss.blur=false")
+    tr.add_argument("--device", help="cpu, cuda, cuda:N or auto (CUDA if there is one); default: the config's (cpu)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=cmd_train, outputs=[("out", "dir")])
 

@@ -97,6 +97,12 @@ class SceneBatch:
     def __len__(self) -> int:
         return self.rgb.shape[0]
 
+    def to(self, device: torch.device | str) -> "SceneBatch":
+        """The batch on ``device`` (itself if it is there)."""
+        if self.rgb.device == torch.device(device):
+            return self
+        return SceneBatch(**{f.name: getattr(self, f.name).to(device) for f in fields(SceneBatch)})
+
 
 def empty_scene_arrays(n: int, height: int, width: int, max_objects: int) -> dict[str, np.ndarray]:
     """Zeroed arrays for ``n`` scenes; per-object ids are -1 (unknown / padding)."""

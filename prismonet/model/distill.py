@@ -94,8 +94,8 @@ class DistillTargets:
     def lookup(self, indices: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """Targets of scenes ``indices`` (zeros where there are none) and a ``(B,)`` float mask of those that have them."""
         have = indices < self.count
-        safe = torch.where(have, indices, torch.zeros_like(indices))
-        return {k: v[safe] for k, v in self.t.items()}, have.float()
+        safe = torch.where(have, indices, torch.zeros_like(indices)).cpu()
+        return {k: v[safe].to(indices.device) for k, v in self.t.items()}, have.float()
 
 
 def distill_terms(params, targets: dict[str, torch.Tensor], w: DistillWeights = DistillWeights()) -> dict[str, torch.Tensor]:

@@ -139,9 +139,9 @@ def intersection_loss(model, params, points: int) -> torch.Tensor:
     """``(B,)`` the paper's L_int: sample points between object centres inside both shapes."""
     B, K = params.scale.shape
     if K < 2:
-        return torch.zeros(B, dtype=params.position.dtype)
-    t = torch.linspace(0, 1, points, dtype=params.position.dtype)
-    total = torch.zeros(B, dtype=params.position.dtype)
+        return torch.zeros(B, dtype=params.position.dtype, device=params.position.device)
+    t = torch.linspace(0, 1, points, dtype=params.position.dtype, device=params.position.device)
+    total = torch.zeros(B, dtype=params.position.dtype, device=params.position.device)
     for i in range(K):
         for j in range(i):
             seg = params.position[:, j, None] + t[:, None] * (params.position[:, i, None] - params.position[:, j, None])  # (B, P, 3)
@@ -172,8 +172,8 @@ def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count) -> torch.Tensor:
     for b in range(B):
         n = int(gt_count[b])
         cost = torch.cdist(params.position[b].detach(), gt_position[b, :n])
-        rows, cols = linear_sum_assignment(cost.numpy())
-        r, c = torch.as_tensor(rows), torch.as_tensor(cols)
+        rows, cols = linear_sum_assignment(cost.cpu().numpy())
+        r, c = torch.as_tensor(rows, device=cost.device), torch.as_tensor(cols, device=cost.device)
         out.append((params.position[b, r] - gt_position[b, c]).norm(dim=-1).sum()
                    + (1 - torch.cos(yaw[b, r] - gt_yaw[b, c])).sum() + ((params.scale[b, r] - gt_scale[b, c]) ** 2).sum())
     return torch.stack(out)
@@ -229,7 +229,7 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     batch's depth, e.g. with noise added; ``distill``: the batch's self-distillation targets and
     their mask, ``DistillTargets.lookup``)."""
     p = out.latents.params
-    zero = torch.zeros((), dtype=out.composite.image.dtype)
+    zero = torch.zeros((), dtype=out.composite.image.dtype, device=out.composite.image.device)
     depth_gt = batch.depth if target_depth is None else target_depth
     image = ((blur(out.composite.image, cfg, step) - blur(batch.rgb, cfg, step)) ** 2).sum(1).mean() if cfg.use_image else zero
     far = model.cfg.far_depth

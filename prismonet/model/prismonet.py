@@ -62,7 +62,7 @@ class ModelOutput:
     def encoder_steps(self) -> torch.Tensor:
         """``(B, N)`` the 0-based encoder step of each slot."""
         B, N = self.obj_depth.shape[:2]
-        return self.slot_steps if self.slot_steps is not None else torch.arange(N).expand(B, N)
+        return self.slot_steps if self.slot_steps is not None else torch.arange(N, device=self.obj_depth.device).expand(B, N)
 
 
 class PriSMONet(nn.Module):
@@ -90,6 +90,13 @@ class PriSMONet(nn.Module):
                                        cfg.refiner_coords, cfg.refiner_shape, cfg.refiner_keep)
         self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
         self.register_buffer("pos_scale", torch.tensor(cfg.position_scale), persistent=False)
+
+    def _apply(self, fn, recurse=True):
+        """``.to(device)``, ``.cuda()`` and the like move the frozen prior with the module (it is outside the module
+        tree); its dtype stays its own."""
+        super()._apply(fn, recurse)
+        self.__dict__["prior"] = self.prior.to(self.pos_offset.device)
+        return self
 
     # -- pieces -------------------------------------------------------------------------
     def sdf_fn(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -120,9 +127,9 @@ class PriSMONet(nn.Module):
         lo, hi = self.cfg.scale_range
         axis = raw[:, d_sh + d_tex + 6 : d_sh + d_tex + 9][:, None] if self.cfg.full_rotation else None
         # (cos, sin) raw outputs start near 0: bias towards (1, 0) so the normalisation is well-posed
-        cs = cs + torch.tensor([1.0, 0.0], dtype=cs.dtype)
+        cs = cs + torch.tensor([1.0, 0.0], dtype=cs.dtype, device=cs.device)
         if axis is not None:
-            axis = axis + torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype)
+            axis = axis + torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype, device=axis.device)
         if self.cfg.pose_frame == "camera" or anchor_uv is not None:  # the centre's pixel and its height
             if K is None or T_world_cam is None or ground_z is None:
                 raise ValueError("a camera-frame or anchored model decodes poses with the cameras and ground heights")
@@ -198,8 +205,9 @@ class PriSMONet(nn.Module):
         bg_color = torch.sigmoid(self.bg_encoder(image))
         bg_depth = plane_depth(K, T_world_cam, H, W, ground_z, self.cfg.far_depth)
         cur_image = bg_color[:, :, None, None].expand(B, 3, H, W)
-        cur_depth = torch.full((B, 1, H, W), float("inf"), dtype=image.dtype)
-        cur_mask = torch.zeros(B, 1, H, W, dtype=image.dtype)
+        dev = image.device
+        cur_depth = torch.full((B, 1, H, W), float("inf"), dtype=image.dtype, device=dev)
+        cur_mask = torch.zeros(B, 1, H, W, dtype=image.dtype, device=dev)
         slots, depths, masks, colors, softs, presences = [], [], [], [], [], []
         settings = self.render_settings()
         soft_presence = self.cfg.presence and self.training  # compose by presence; drop no slot
@@ -207,11 +215,11 @@ class PriSMONet(nn.Module):
         pixel_stop = stop is not None and not gate
         live = before = None
         if stop is not None or gate or self.cfg.anchor:
-            live = torch.ones(B, dtype=torch.bool)
+            live = torch.ones(B, dtype=torch.bool, device=dev)
         if pixel_stop:
             before = stop.count(cur_image, torch.minimum(cur_depth, bg_depth))
         rule = self.anchor_rule() if self.cfg.anchor else None
-        failed = torch.zeros(B, H, W, dtype=torch.bool) if self.cfg.anchor else None  # components proposed in vain
+        failed = torch.zeros(B, H, W, dtype=torch.bool, device=dev) if self.cfg.anchor else None  # components proposed in vain
         for _ in range(N):
             if pixel_stop:
                 live = live & ~stop.explained(before)
@@ -258,12 +266,12 @@ class PriSMONet(nn.Module):
             softs.append(obj.soft_mask)
         for _ in range(N - len(slots)):  # slots never decoded: inactive, empty renders
             slots.append(self._empty_slot(image, K, T_world_cam, ground_z))
-            depths.append(torch.full((B, H, W), self.cfg.far_depth, dtype=image.dtype))
-            masks.append(torch.zeros(B, H, W, dtype=torch.bool))
-            colors.append(torch.zeros(B, 3, H, W, dtype=image.dtype))
-            softs.append(None if self.cfg.soft_mask_tau <= 0 else torch.zeros(B, 1, H, W, dtype=image.dtype))
+            depths.append(torch.full((B, H, W), self.cfg.far_depth, dtype=image.dtype, device=dev))
+            masks.append(torch.zeros(B, H, W, dtype=torch.bool, device=dev))
+            colors.append(torch.zeros(B, 3, H, W, dtype=image.dtype, device=dev))
+            softs.append(None if self.cfg.soft_mask_tau <= 0 else torch.zeros(B, 1, H, W, dtype=image.dtype, device=dev))
             if self.cfg.presence:
-                presences.append(torch.zeros(B, dtype=image.dtype))
+                presences.append(torch.zeros(B, dtype=image.dtype, device=dev))
         params = _cat_slots(slots)
         obj_depth, obj_mask, obj_color = torch.stack(depths, 1), torch.stack(masks, 1), torch.stack(colors, 1)
         soft = torch.cat(softs, 1) if softs[0] is not None else None
@@ -325,14 +333,15 @@ class PriSMONet(nn.Module):
         params = replace(out.latents.params)
         B, N = params.scale.shape
         H, W = image.shape[-2:]
-        active = params.active.clone() if params.active is not None else torch.ones(B, N, dtype=torch.bool)
+        dev = image.device
+        active = params.active.clone() if params.active is not None else torch.ones(B, N, dtype=torch.bool, device=dev)
         shown = out.obj_mask & active[:, :, None, None]
         cur_image = out.composite.image
         cur_depth = torch.where(shown, out.obj_depth, torch.full_like(out.obj_depth, float("inf"))).amin(1, keepdim=True)
         cur_mask = shown.any(1, keepdim=True).to(image.dtype)
-        rule, failed = self.anchor_rule(), torch.zeros(B, H, W, dtype=torch.bool)
-        added = torch.zeros(B, N, dtype=torch.bool)
-        rows = torch.arange(B)
+        rule, failed = self.anchor_rule(), torch.zeros(B, H, W, dtype=torch.bool, device=dev)
+        added = torch.zeros(B, N, dtype=torch.bool, device=dev)
+        rows = torch.arange(B, device=dev)
         for _ in range(self.cfg.reanchor_steps):
             anchors = find_anchors(image, cur_image, rule, failed)
             live = anchors.found & ~active.all(1)
@@ -386,8 +395,9 @@ class PriSMONet(nn.Module):
 
     def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""
-        params = self.decode_latent(torch.zeros(image.shape[0], self.out_dim, dtype=image.dtype), K, T_world_cam, ground_z)
-        params.active = torch.zeros(image.shape[0], 1, dtype=torch.bool)
+        params = self.decode_latent(torch.zeros(image.shape[0], self.out_dim, dtype=image.dtype, device=image.device), K,
+                                    T_world_cam, ground_z)
+        params.active = torch.zeros(image.shape[0], 1, dtype=torch.bool, device=image.device)
         return params
 
 

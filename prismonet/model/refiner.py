@@ -79,7 +79,7 @@ def slot_views(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Te
 def unit_coords(uv: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """Pixel positions ``uv (..., 2)`` scaled to [-1, 1] over a ``height x width`` image (OpenCV pixel centres;
     ``-1`` and ``1`` are the outer edges, as ``grid_sample`` with ``align_corners=False`` reads them)."""
-    return (2 * uv + 1) / torch.tensor([width, height], dtype=uv.dtype) - 1
+    return (2 * uv + 1) / torch.tensor([width, height], dtype=uv.dtype, device=uv.device) - 1
 
 
 def with_coords(views: torch.Tensor, uv: torch.Tensor | None = None) -> torch.Tensor:
@@ -87,7 +87,7 @@ def with_coords(views: torch.Tensor, uv: torch.Tensor | None = None) -> torch.Te
     the views' own pixel positions when they are glimpses (``glimpse``), else the image's grid."""
     R, _, H, W = views.shape
     if uv is None:
-        uv = pixel_grid(H, W, dtype=views.dtype).expand(R, H, W, 2)
+        uv = pixel_grid(H, W, dtype=views.dtype, device=views.device).expand(R, H, W, 2)
     return torch.cat([views, unit_coords(uv, H, W).permute(0, 3, 1, 2)], 1)
 
 
@@ -104,7 +104,7 @@ def glimpse(views: torch.Tensor, centre_uv: torch.Tensor, frac: float) -> tuple[
     side centred on ``centre_uv (R, 2)``, at the same ``H x W``: a zoom of ``1 / frac`` onto each slot. Also
     returns the ``(R, H, W, 2)`` image pixel each view pixel samples."""
     R, _, H, W = views.shape
-    local = pixel_grid(H, W, dtype=views.dtype) - torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=views.dtype)
+    local = pixel_grid(H, W, dtype=views.dtype, device=views.device) - torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=views.dtype, device=views.device)
     uv = centre_uv[:, None, None, :] + frac * local[None]  # (R, H, W, 2) image pixels
     return F.grid_sample(views, unit_coords(uv, H, W), mode="bilinear", padding_mode="zeros", align_corners=False), uv
 

@@ -75,12 +75,12 @@ def seek_targets(instance: torch.Tensor, num_slots: int, foreground: torch.Tenso
     B, H, W = instance.shape
     if foreground.shape != (B, H, W) or depth.shape != (B, H, W):
         raise ValueError(f"foreground and depth: expected shape {(B, H, W)}, got {tuple(foreground.shape)} and {tuple(depth.shape)}")
-    targets = torch.zeros(B, num_slots, 3, dtype=depth.dtype)
-    weight = torch.zeros(B, num_slots, dtype=depth.dtype)
-    inst, fg = instance.numpy(), foreground.numpy()
-    far = at_far_clip(depth, far_depth).numpy() if far_depth is not None else np.zeros((B, H, W), bool)
+    targets = torch.zeros(B, num_slots, 3, dtype=depth.dtype, device=depth.device)
+    weight = torch.zeros(B, num_slots, dtype=depth.dtype, device=depth.device)
+    inst, fg = instance.cpu().numpy(), foreground.cpu().numpy()
+    far = at_far_clip(depth, far_depth).cpu().numpy() if far_depth is not None else np.zeros((B, H, W), bool)
     kernel = np.ones((3, 3), np.uint8)
-    uv = pixel_grid(H, W, dtype=depth.dtype)
+    uv = pixel_grid(H, W, dtype=depth.dtype, device=depth.device)
     for b in range(B):
         won = np.bincount(inst[b][fg[b]].ravel(), minlength=num_slots + 1)[1:]
         left = cv2.morphologyEx((fg[b] & (inst[b] == 0)).astype(np.uint8), cv2.MORPH_OPEN, kernel)
@@ -99,7 +99,7 @@ def seek_targets(instance: torch.Tensor, num_slots: int, foreground: torch.Tenso
 
 def _centroid(region: np.ndarray, uv: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> torch.Tensor:
     """Mean world point of the region's depth points."""
-    sel = torch.from_numpy(region)
+    sel = torch.from_numpy(region).to(uv.device)
     return transform_points(T_world_cam, unproject(uv[sel], depth[sel][:, None], K)).mean(0)
 
 
@@ -109,7 +109,7 @@ def _foot(region: np.ndarray, K: torch.Tensor, T_world_cam: torch.Tensor, ground
     rows, cols = np.nonzero(region)
     v = rows.max()
     u = cols[rows == v].mean()
-    ray = unproject(torch.tensor([[u, float(v)]], dtype=K.dtype), torch.ones(1, 1, dtype=K.dtype), K)[0]
+    ray = unproject(torch.tensor([[u, float(v)]], dtype=K.dtype, device=K.device), torch.ones(1, 1, dtype=K.dtype, device=K.device), K)[0]
     d = T_world_cam[:3, :3] @ ray
     o = T_world_cam[:3, 3]
     if d[2] >= 0:

@@ -8,8 +8,10 @@
 - Logs: TensorBoard scalars in ``RUN/tb``, the same scalars in ``RUN/log.jsonl``, and image grids
   in ``RUN/images``.
 - A non-finite loss skips its step; more than ``max_nonfinite`` of them stop training with an error.
-- Under ``torchrun`` (``WORLD_SIZE`` > 1) it runs DistributedDataParallel on the gloo backend:
-  each rank takes a share of the global batch, rank 0 writes.
+- ``device``: ``"cpu"`` (the default), ``"cuda"`` or ``"auto"`` (CUDA when there is one). Batches are
+  drawn and their noise is made on the host either way, so a run may resume on another device.
+- Under ``torchrun`` (``WORLD_SIZE`` > 1) it runs DistributedDataParallel (gloo on CPUs, NCCL on
+  CUDA, one GPU per rank): each rank takes a share of the global batch, rank 0 writes.
 """
 
 from __future__ import annotations
@@ -83,6 +85,9 @@ class TrainConfig:
     grad_clip: float = 10.0
     """Global gradient-norm clip (0 = off)."""
     seed: int = 0
+    device: str = "cpu"
+    """Where to train: ``"cpu"``, ``"cuda"`` (``"cuda:N"``) or ``"auto"`` (CUDA if available). It may change when a run
+    resumes."""
     threads: int = 2
     """Compute threads per process; 0: chosen by measuring, between 1 and the machine's cores, again
     every few hundred steps (``prismonet.threads``: on a shared 2-core machine two threads are 1.4x
@@ -105,6 +110,11 @@ class TrainConfig:
         if self.loss.w_keep > 0 and not (self.model.refine_passes and self.model.refiner_keep and self.distill):
             raise ValueError("loss.w_keep needs a refiner that keeps or drops slots (model.refine_passes >= 1, "
                              "model.refiner_keep) and distillation targets (distill) that say which slots the fit shows")
+        if self.device != "auto":
+            try:
+                torch.device(self.device)
+            except RuntimeError:
+                raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {self.device!r}") from None
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
         if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
@@ -122,7 +132,7 @@ class TrainConfig:
                                  f"{self.lr_decay_from} to below steps={self.steps}, got {list(self.lr_restarts)}")
 
 
-RESUME_IGNORED = ("threads", "log_every", "image_every", "checkpoint_every", "steps", "max_nonfinite", "lr_decay_from",
+RESUME_IGNORED = ("device", "threads", "log_every", "image_every", "checkpoint_every", "steps", "max_nonfinite", "lr_decay_from",
                   "lr_final_ratio", "lr_restarts")
 """Fields that may change between a run and its resumption (e.g. to train for longer, with a decay tail)."""
 
@@ -150,11 +160,27 @@ def _normalised(saved: dict) -> dict:
         return saved
 
 
-def _dist() -> tuple[int, int]:
+def _dist(backend: str = "gloo") -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not torch.distributed.is_initialized():
-        torch.distributed.init_process_group("gloo")
+        torch.distributed.init_process_group(backend)
     return (torch.distributed.get_rank() if world > 1 else 0), world
+
+
+def training_device(name: str, world: int = 1) -> torch.device:
+    """The device a run trains on: ``"auto"`` is CUDA where there is one, else the CPU; under DDP on CUDA each rank
+    takes the GPU of its ``LOCAL_RANK``. Asking for CUDA on a machine without it is an error, not a silent CPU run."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise TrainingError(f"device {name!r}: this machine has no CUDA device (use device=cpu or device=auto)")
+        if world > 1 and device.index is None:
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        if device.index is not None:
+            torch.cuda.set_device(device)
+    return device
 
 
 def _defer_stop_signals(stop: dict):
@@ -220,16 +246,17 @@ def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tens
     if cfg.input_blur > 0:
         import kornia
 
-        sigma = (torch.rand(B, generator=g, dtype=image.dtype) * cfg.input_blur).clamp_min(1e-3)
+        sigma = (torch.rand(B, generator=g, dtype=image.dtype) * cfg.input_blur).clamp_min(1e-3).to(image.device)
         size = 2 * math.ceil(3 * cfg.input_blur) + 1
         image = kornia.filters.gaussian_blur2d(image, size, torch.stack([sigma, sigma], 1), border_type="replicate")
     noise = cfg.input_noise
     if cfg.input_noise_max > cfg.input_noise:
-        noise = cfg.input_noise + (cfg.input_noise_max - cfg.input_noise) * torch.rand(B, 1, 1, 1, generator=g, dtype=image.dtype)
-    image = image + torch.randn(batch.rgb.shape, generator=g) * noise
+        noise = cfg.input_noise + (cfg.input_noise_max - cfg.input_noise) * torch.rand(B, 1, 1, 1, generator=g, dtype=image.dtype).to(image.device)
+    # the noise is drawn from the host generator ``g`` whatever the device, so that every device sees the same inputs
+    image = image + torch.randn(batch.rgb.shape, generator=g).to(image.device) * noise
     depth = batch.depth.clamp(max=cfg.depth_clip)
     if cfg.depth_noise_eta > 0:
-        depth = (depth + torch.randn(depth.shape, generator=g) * cfg.depth_noise_eta * depth**2).clamp(0, cfg.depth_clip)
+        depth = (depth + torch.randn(depth.shape, generator=g).to(depth.device) * cfg.depth_noise_eta * depth**2).clamp(0, cfg.depth_clip)
     return image, depth
 
 
@@ -242,12 +269,12 @@ def image_grid(batch, out, path: Path, n: int = 4) -> None:
 
     rows = []
     for i in range(min(n, len(batch))):
-        to8 = lambda t: (t.detach().clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-        d_gt, d = batch.depth[i, 0].numpy(), out.composite.depth[i, 0].detach().numpy()
+        to8 = lambda t: (t.detach().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
+        d_gt, d = batch.depth[i, 0].cpu().numpy(), out.composite.depth[i, 0].detach().cpu().numpy()
         lo, hi = float(d_gt[d_gt > 0].min()), float(d_gt.max())
         panels = {"input": to8(batch.rgb[i]), "reconstruction": to8(out.composite.image[i]),
                   "depth target": colorize_depth(d_gt, lo, hi), "depth": colorize_depth(d, lo, hi),
-                  "instances": colorize_instances(out.composite.instance[i].numpy())}
+                  "instances": colorize_instances(out.composite.instance[i].cpu().numpy())}
         rows.append(np.concatenate([labelled_panel(p, name, (128, 128)) for name, p in panels.items()], 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     write_image(path, np.concatenate(rows, 0)[..., ::-1])
@@ -262,7 +289,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     from prismonet.model.io import save_model
     from prismonet.model.prismonet import PriSMONet
 
-    rank, world = _dist()
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    device = training_device(cfg.device, world)
+    rank, world = _dist("nccl" if device.type == "cuda" else "gloo")
     if cfg.batch_size % world:
         raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the number of processes {world}")
     governor = None
@@ -311,6 +340,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
         if cfg.loss.w_keep > 0 and VISIBLE not in targets.t:
             raise TrainingError(f"{cfg.distill}: these targets do not say which slots the fit shows, so loss.w_keep has "
                                 "nothing to learn from; make them again with `prismonet distill`")
+    model.to(device)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=cfg.lr)
     cfg_json = json.loads(json.dumps(asdict(cfg)))
@@ -326,7 +356,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
         init_weights = meta.get("init_weights")
         if rank == 0:
             _truncate_log(run / "log.jsonl", start)
-    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
 
     def save(step: int) -> None:
         if rank != 0:
@@ -354,14 +386,14 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             t0 = time.perf_counter()
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
-            batch = ds.batch(idx.tolist())
+            batch = ds.batch(idx.tolist()).to(device)
             image, target_depth = make_inputs(batch, cfg, g)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(cfg, step)
             net.train()
             out = net(image, batch.K, batch.T_world_cam, batch.ground_z)
             terms = compute_losses(model, out, batch, cfg.loss, step, target_depth,
-                                   None if targets is None else targets.lookup(idx))
+                                   None if targets is None else targets.lookup(idx.to(device)))
             opt.zero_grad(set_to_none=True)
             if not math.isfinite(float(terms.total.detach())):
                 nonfinite += 1

@@ -41,7 +41,7 @@ def largest_components(mask: torch.Tensor, min_area: int) -> list[np.ndarray | N
     """Per scene of ``mask (B, H, W)`` bool, the boolean ``(H, W)`` mask of its largest 8-connected
     component with at least ``min_area`` pixels, or ``None``."""
     found: list[np.ndarray | None] = []
-    for m in mask.numpy().astype(np.uint8):
+    for m in mask.cpu().numpy().astype(np.uint8):
         n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
         if n <= 1:
             found.append(None)
@@ -61,11 +61,11 @@ def largest_region(unexplained: torch.Tensor, open_pixels: int, min_area: int,
     if exclude is not None:
         mask = mask & ~exclude
     region = torch.zeros_like(mask)
-    found = torch.zeros(mask.shape[0], dtype=torch.bool)
+    found = torch.zeros(mask.shape[0], dtype=torch.bool)  # on the host: read back by the callers
     for b, comp in enumerate(largest_components(mask, min_area)):
         if comp is not None:
-            region[b], found[b] = torch.from_numpy(comp), True
-    return region, found
+            region[b], found[b] = torch.from_numpy(comp).to(mask.device), True
+    return region, found.to(mask.device)
 
 
 def shaded(image: torch.Tensor, comp_image: torch.Tensor, k_min: float, tol: float) -> torch.Tensor:
@@ -148,7 +148,7 @@ def find_anchors(image: torch.Tensor, comp_image: torch.Tensor, rule: AnchorRule
     (see the module docstring), away from the pixels ``exclude (B, H, W)`` bool (components proposed in vain)."""
     B, _, H, W = image.shape
     region, found = largest_region(rule.unexplained(image, comp_image), rule.open, rule.min_area, exclude)
-    uv = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=image.dtype).repeat(B, 1)
+    uv = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=image.dtype).repeat(B, 1)  # filled on the host
     for b in torch.nonzero(found).flatten().tolist():
-        uv[b] = torch.tensor(deepest_pixel(region[b].numpy()), dtype=image.dtype)
-    return Anchors(uv, region, found)
+        uv[b] = torch.tensor(deepest_pixel(region[b].cpu().numpy()), dtype=image.dtype)
+    return Anchors(uv.to(image.device), region, found)

@@ -28,7 +28,8 @@ def zbuffer(obj_depth: torch.Tensor, obj_mask: torch.Tensor, upto: int | None = 
     m = obj_mask[:, :upto]
     if d.shape[1] == 0:
         B, _, H, W = obj_depth.shape
-        return torch.zeros(B, H, W, dtype=torch.long), torch.zeros(B, H, W, dtype=torch.bool)
+        return (torch.zeros(B, H, W, dtype=torch.long, device=obj_depth.device),
+                torch.zeros(B, H, W, dtype=torch.bool, device=obj_depth.device))
     d = torch.where(m, d, torch.full_like(d, float("inf")))
     winner = d.min(dim=1).indices  # first minimum on ties, like argmin, and ~14x faster on CPU
     return winner, m.any(dim=1)

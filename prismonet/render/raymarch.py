@@ -65,23 +65,24 @@ def find_crossings(
     if samples < 2:
         raise ValueError(f"samples per ray must be at least 2, got {samples}")
     R = o.shape[0]
-    frac = torch.linspace(0.0, 1.0, samples, dtype=o.dtype)
+    dev = o.device
+    frac = torch.linspace(0.0, 1.0, samples, dtype=o.dtype, device=dev)
     chunk = SEARCH_CHUNK if chunk <= 0 else min(chunk, samples)
     rays_per_block = max(1, block_points // chunk)  # ~block_points per SDF call
     # start from empty tensors so that zero rays (all slots culled) give zero crossings
-    hit_idx = [torch.zeros(0, dtype=torch.long)]
-    ta_all = [torch.zeros(0, dtype=o.dtype)]
-    tb_all = [torch.zeros(0, dtype=o.dtype)]
+    hit_idx = [torch.zeros(0, dtype=torch.long, device=dev)]
+    ta_all = [torch.zeros(0, dtype=o.dtype, device=dev)]
+    tb_all = [torch.zeros(0, dtype=o.dtype, device=dev)]
     evals = 0
-    miss_all = [torch.zeros(0, dtype=torch.long)]
-    tmin_all = [torch.zeros(0, dtype=o.dtype)]
+    miss_all = [torch.zeros(0, dtype=torch.long, device=dev)]
+    tmin_all = [torch.zeros(0, dtype=o.dtype, device=dev)]
     for s in range(0, R, rays_per_block):
         sl = slice(s, min(s + rays_per_block, R))
         t = t_near[sl, None] + (t_far[sl] - t_near[sl])[:, None] * frac  # (r, S)
         o_b, d_b, z_b = o[sl], d[sl], z[sl]
-        active = torch.arange(t.shape[0])
-        last_pos = torch.zeros(t.shape[0], dtype=torch.bool)  # sign of each ray's previous sample
-        best_f = torch.full((t.shape[0],), float("inf"), dtype=o.dtype)
+        active = torch.arange(t.shape[0], device=dev)
+        last_pos = torch.zeros(t.shape[0], dtype=torch.bool, device=dev)  # sign of each ray's previous sample
+        best_f = torch.full((t.shape[0],), float("inf"), dtype=o.dtype, device=dev)
         best_t = t[:, 0].clone()
         for c0 in range(0, samples, chunk):
             c1 = min(c0 + chunk, samples)

@@ -27,9 +27,9 @@ Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 FULL_BOX: Box = PADDED_CUBE
 
 
-def _corners(box: Box, dtype) -> torch.Tensor:
+def _corners(box: Box, dtype, device=None) -> torch.Tensor:
     lo, hi = box
-    return torch.tensor([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], dtype=dtype)
+    return torch.tensor([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], dtype=dtype, device=device)
 
 
 @dataclass
@@ -59,7 +59,7 @@ def projected_box_rects(T_cam_obj: torch.Tensor, K: torch.Tensor, height: int, w
     ``T_cam_obj``: ``(N, 4, 4)``; ``K``: ``(N, 3, 3)``. A box that reaches behind ``NEAR_Z`` gets
     the whole image (conservative). Off-screen boxes get an empty rectangle (``u1 < u0``).
     """
-    c = _corners(box, T_cam_obj.dtype)
+    c = _corners(box, T_cam_obj.dtype, T_cam_obj.device)
     x = torch.einsum("nij,cj->nci", T_cam_obj[:, :3, :3], c) + T_cam_obj[:, None, :3, 3]  # (N, 8, 3)
     z = x[..., 2]
     behind = (z < NEAR_Z).any(dim=1)
@@ -71,11 +71,11 @@ def projected_box_rects(T_cam_obj: torch.Tensor, K: torch.Tensor, height: int, w
     u1 = torch.floor(u.max(1).values).clamp(-1, width - 1)
     v0 = torch.ceil(v.min(1).values).clamp(0, height)
     v1 = torch.floor(v.max(1).values).clamp(-1, height - 1)
-    full = torch.tensor([0, 0, width - 1, height - 1], dtype=u0.dtype)
+    full = torch.tensor([0, 0, width - 1, height - 1], dtype=u0.dtype, device=u0.device)
     rects = torch.stack([u0, v0, u1, v1], dim=1)
     rects = torch.where(behind[:, None], full, rects)
     all_behind = (z < NEAR_Z).all(dim=1)
-    rects[all_behind] = torch.tensor([0, 0, -1, -1], dtype=u0.dtype)
+    rects[all_behind] = torch.tensor([0, 0, -1, -1], dtype=u0.dtype, device=u0.device)
     return rects.long()
 
 
@@ -86,7 +86,7 @@ def slab_interval(o: torch.Tensor, d: torch.Tensor, box: Box = FULL_BOX) -> tupl
     """
     d_safe = torch.where(d.abs() < EPS_RAY_DIR, torch.where(d < 0, -EPS_RAY_DIR, EPS_RAY_DIR), d)
     inv = 1.0 / d_safe
-    lo, hi = (torch.tensor(b, dtype=o.dtype) for b in box)
+    lo, hi = (torch.tensor(b, dtype=o.dtype, device=o.device) for b in box)
     ta = (lo - o) * inv
     tb = (hi - o) * inv
     t0 = torch.minimum(ta, tb).max(dim=-1).values
@@ -114,24 +114,25 @@ def object_rays(
     if interval not in ("ray", "object"):
         raise ValueError(f"interval: expected 'ray' or 'object', got {interval!r}")
     N = T_obj_cam.shape[0]
-    dtype = T_obj_cam.dtype
+    dtype, device = T_obj_cam.dtype, T_obj_cam.device
     if cull:
         rects = projected_box_rects(T_cam_obj, K, height, width, box)
     else:
-        rects = torch.tensor([[0, 0, width - 1, height - 1]], dtype=torch.long).expand(N, 4)
+        rects = torch.tensor([[0, 0, width - 1, height - 1]], dtype=torch.long, device=device).expand(N, 4)
     objs, pixs = [], []
+    rect_list = rects.tolist()  # one transfer, not one per object, when on an accelerator
     for n in torch.nonzero(active, as_tuple=False).flatten().tolist():
-        u0, v0, u1, v1 = rects[n].tolist()
+        u0, v0, u1, v1 = rect_list[n]
         if u1 < u0 or v1 < v0:
             continue  # off-screen
-        vv, uu = torch.meshgrid(torch.arange(v0, v1 + 1), torch.arange(u0, u1 + 1), indexing="ij")
+        vv, uu = torch.meshgrid(torch.arange(v0, v1 + 1, device=device), torch.arange(u0, u1 + 1, device=device), indexing="ij")
         pix = (vv * width + uu).flatten()
         pixs.append(pix)
         objs.append(torch.full_like(pix, n))
     if not objs:
-        empty = torch.zeros(0, dtype=torch.long)
-        z = torch.zeros(0, dtype=dtype)
-        return ObjectRays(empty, empty, z, z, torch.zeros(0, 3, dtype=dtype))
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        z = torch.zeros(0, dtype=dtype, device=device)
+        return ObjectRays(empty, empty, z, z, torch.zeros(0, 3, dtype=dtype, device=device))
     obj = torch.cat(objs)
     pix = torch.cat(pixs)
     u = (pix % width).to(dtype)

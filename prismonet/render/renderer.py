@@ -150,7 +150,7 @@ def _frames(params: SceneParams, T_world_cam: torch.Tensor):
 
 
 def _active(params: SceneParams, B: int, K: int) -> torch.Tensor:
-    return torch.ones(B * K, dtype=torch.bool) if params.active is None else params.active.reshape(-1)
+    return torch.ones(B * K, dtype=torch.bool, device=params.z_sh.device) if params.active is None else params.active.reshape(-1)
 
 
 def _cast(params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor, height: int, width: int,
@@ -170,8 +170,8 @@ def _object_render(params: SceneParams, color_fn: ColorFn | None, slot, pix, t_s
     B, Kslots, H, W = shape
     flat = slot * (H * W) + pix
     n = B * Kslots * H * W
-    depth = torch.full((n,), far_depth, dtype=t_star.dtype).index_put((flat,), t_star)
-    mask = torch.zeros(n, dtype=torch.bool).index_put((flat,), torch.ones_like(flat, dtype=torch.bool))
+    depth = torch.full((n,), far_depth, dtype=t_star.dtype, device=t_star.device).index_put((flat,), t_star)
+    mask = torch.zeros(n, dtype=torch.bool, device=t_star.device).index_put((flat,), torch.ones_like(flat, dtype=torch.bool))
     out = ObjectRender(depth.reshape(B, Kslots, H, W), mask.reshape(B, Kslots, H, W), None, slot, pix, x_obj, stats)
     if color_fn is not None:
         out.color = shade_objects(color_fn, params, out)
@@ -184,7 +184,7 @@ def shade_objects(color_fn: ColorFn, params: SceneParams, obj: ObjectRender) -> 
     other texture latents it recolours the same geometry without casting a ray."""
     B, Kslots, H, W = obj.depth.shape
     rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[obj.hit_slot], obj.hit_x_obj)
-    color = torch.zeros(B * Kslots * H * W, 3, dtype=rgb.dtype).index_put((obj.hit_slot * (H * W) + obj.hit_pix,), rgb)
+    color = torch.zeros(B * Kslots * H * W, 3, dtype=rgb.dtype, device=rgb.device).index_put((obj.hit_slot * (H * W) + obj.hit_pix,), rgb)
     return color.reshape(B, Kslots, H, W, 3).permute(0, 1, 4, 2, 3)
 
 
@@ -218,7 +218,7 @@ def render_objects(
         x_min = o_all[mslot] + cr.t_min[:, None] * torch.einsum("rij,rj->ri", A[mslot], rays.d_cam[cr.miss_ray])
         f_world = sdf_fn(z_sh[mslot], x_min[:, None, :])[:, 0] * params.scale.reshape(-1).clamp_min(MIN_SCALE)[mslot]
         HW = height * width
-        dense = torch.zeros(B * Kslots * HW, dtype=t_star.dtype)
+        dense = torch.zeros(B * Kslots * HW, dtype=t_star.dtype, device=t_star.device)
         dense = dense.index_put((slot * HW + pix,), torch.ones_like(t_star))
         dense = dense.index_put((mslot * HW + rays.pix[cr.miss_ray],), torch.sigmoid(-f_world / settings.soft_mask_tau))
         out.soft_mask = dense.reshape(B, Kslots, height, width)
@@ -281,7 +281,7 @@ def render_scene_reference(
     A = T_obj_cam[:, :3, :3]
     o = T_obj_cam[rays.obj, :3, 3]
     d = torch.einsum("rij,rj->ri", A[rays.obj], rays.d_cam)
-    frac = torch.linspace(0.0, 1.0, settings.samples, dtype=o.dtype)
+    frac = torch.linspace(0.0, 1.0, settings.samples, dtype=o.dtype, device=o.device)
     t = rays.t_near[:, None] + (rays.t_far - rays.t_near)[:, None] * frac  # (R, S) constants
     f = sdf_fn(z_sh[rays.obj], o[:, None, :] + t[..., None] * d[:, None, :])  # (R, S) under autograd
     pos = f.detach() > 0

@@ -56,6 +56,18 @@ class ShapePrior:
             p.requires_grad_(False)
         return self
 
+    def to(self, device: torch.device | str) -> "ShapePrior":
+        """This prior on ``device``: itself if it is there already, else a moved copy (a prior may be
+        shared by several models, so it is never moved in place)."""
+        device = torch.device(device)
+        if self.latents.device == device:
+            return self
+        import copy
+
+        from dataclasses import replace
+
+        return replace(self, decoder=copy.deepcopy(self.decoder).to(device), latents=self.latents.to(device))
+
     def save(self, path_stem: str | Path) -> tuple[Path, Path]:
         """Write ``<stem>.safetensors`` and ``<stem>.json`` atomically."""
         from prismonet.checkpoint import save_checkpoint

@@ -1,0 +1,116 @@
+"""Devices: the training path keeps every tensor on its inputs' device.
+
+Without a GPU the placement is checked on the CPU: the model and the batch stay on the CPU while PyTorch's default
+device is ``meta``, so any tensor made without ``device=`` lands on ``meta`` and the first operation that mixes it with
+a CPU tensor raises. With CUDA (the lent GPU machine), a short training run on the GPU matches the CPU's."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from prismonet.model.trainer import TrainConfig, TrainingError, training_device
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    """The shipped Clevr test scenes (packed, split ``test``): no renderer needed, so this runs where open3d is not."""
+    from prismonet.assets import shipped_samples
+
+    return shipped_samples()
+
+
+@pytest.fixture
+def host_kornia(monkeypatch):
+    """Kornia makes its host-side checks on the default device; keep them on the host under ``meta``."""
+    import kornia
+
+    blur = kornia.filters.gaussian_blur2d
+
+    def on_host(*a, **k):
+        with torch.device("cpu"):
+            return blur(*a, **k)
+
+    monkeypatch.setattr(kornia.filters, "gaussian_blur2d", on_host)
+
+
+VARIANTS = {
+    "clevr": {},
+    "refiner": {"refine_passes": 1, "refiner_glimpse": 0.375, "refiner_coords": True, "refiner_shape": True,
+                "refiner_keep": True},
+    "presence": {"num_slots": 4, "presence": True},
+    "full_rotation": {"full_rotation": True, "pose_frame": "camera"},
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_forward_and_backward_make_no_tensor_off_the_inputs_device(scenes, host_kornia, variant):
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.losses import LossConfig, compute_losses
+    from prismonet.model.prismonet import PriSMONet
+
+    torch.manual_seed(0)
+    model = PriSMONet(ModelConfig(soft_mask_tau=0.05, **VARIANTS[variant]))
+    batch = SceneDataset(scenes, "test").batch(range(4))
+    loss_cfg = LossConfig(w_mask=0.1, mask_from_depth=True, w_pose=0.1)
+    for step in (0, 50_000):  # blurred, then sharp
+        with torch.device("meta"):
+            out = model(batch.rgb, batch.K, batch.T_world_cam, batch.ground_z)
+            terms = compute_losses(model, out, batch, loss_cfg, step)
+            terms.total.backward()
+        assert terms.total.device.type == "cpu" and torch.isfinite(terms.total)
+
+
+def test_the_probe_catches_a_tensor_made_without_a_device():
+    x = torch.ones(3)
+    with torch.device("meta"), pytest.raises(RuntimeError, match="device"):
+        x + torch.zeros(3)
+
+
+def test_asking_for_cuda_without_it_is_one_clear_error():
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(TrainingError, match="no CUDA device"):
+        training_device("cuda")
+    assert training_device("auto") == torch.device("cpu")
+    with pytest.raises(ValueError, match="device must be"):
+        TrainConfig(device="gpu")
+
+
+def test_the_prior_follows_the_model_and_is_never_moved_in_place():
+    from prismonet.model.prismonet import PriSMONet
+
+    model = PriSMONet()
+    prior = model.prior
+    assert model.to("cpu").prior is prior  # already there: no copy
+    model.to("meta")
+    assert model.prior.latents.device.type == "meta"
+    assert next(model.prior.decoder.parameters()).device.type == "meta"
+    assert prior.latents.device.type == "cpu" and next(prior.decoder.parameters()).device.type == "cpu"
+
+
+def test_a_batch_moves_whole(scenes):
+    from prismonet.data.dataset import SceneDataset
+
+    batch = SceneDataset(scenes, "test").batch([0, 1])
+    assert batch.to("cpu") is batch
+    moved = batch.to("meta")
+    assert all(getattr(moved, f.name).device.type == "meta" for f in dataclasses.fields(moved))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (run on the lent GPU machine)")
+def test_training_on_cuda_matches_the_cpu(scenes, tmp_path):
+    import json
+
+    from prismonet.model.trainer import train
+
+    logs = {}
+    for device in ("cpu", "cuda"):
+        cfg = TrainConfig(data=str(scenes), split="test", steps=3, batch_size=4, lr=1e-3, log_every=1, checkpoint_every=3,
+                          image_every=3, seed=3, threads=1, device=device)
+        train(cfg, tmp_path / device, progress=False)
+        logs[device] = [json.loads(line) for line in (tmp_path / device / "log.jsonl").read_text().splitlines()]
+    for a, b in zip(logs["cpu"], logs["cuda"]):
+        assert a["total"] == pytest.approx(b["total"], rel=2e-3, abs=1e-5), (a, b)
+    assert (tmp_path / "cuda" / "model.safetensors").is_file() and (tmp_path / "cuda" / "images").is_dir()
