@@ -114,3 +114,23 @@ def test_training_on_cuda_matches_the_cpu(scenes, tmp_path):
     for a, b in zip(logs["cpu"], logs["cuda"]):
         assert a["total"] == pytest.approx(b["total"], rel=2e-3, abs=1e-5), (a, b)
     assert (tmp_path / "cuda" / "model.safetensors").is_file() and (tmp_path / "cuda" / "images").is_dir()
+
+
+def test_the_search_plan_by_device_and_that_it_finds_the_same_crossings():
+    from prismonet.render.raymarch import ACCEL_BLOCK_POINTS, BLOCK_POINTS, SEARCH_CHUNK, find_crossings, search_plan
+
+    assert search_plan(torch.device("cpu"), 32) == (BLOCK_POINTS, SEARCH_CHUNK) == (16384, 4)
+    assert search_plan(torch.device("meta"), 32) == (ACCEL_BLOCK_POINTS, 32)  # any accelerator: all samples at once
+    assert search_plan(torch.device("meta"), 12, 100, 40) == (100, 12)  # given values win; a chunk is at most the samples
+    g = torch.Generator().manual_seed(0)
+    R = 3000
+    o = torch.randn(R, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, -3.0])
+    d = torch.nn.functional.normalize(torch.randn(R, 3, generator=g) * 0.25 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    z = torch.zeros(R, 1)
+    sphere = lambda z, x: x.norm(dim=-1) - 0.6  # noqa: E731
+    t0, t1 = torch.full((R,), 1.0), torch.full((R,), 5.0)
+    cpu = find_crossings(sphere, z, o, d, t0, t1, 32, track_min=True)
+    accel = find_crossings(sphere, z, o, d, t0, t1, 32, block_points=ACCEL_BLOCK_POINTS, chunk=32, track_min=True)
+    assert 0 < cpu.ray.numel() < R
+    for a, b in ((cpu.ray, accel.ray), (cpu.t_a, accel.t_a), (cpu.t_b, accel.t_b), (cpu.miss_ray, accel.miss_ray), (cpu.t_min, accel.t_min)):
+        assert torch.equal(a, b)

@@ -18,9 +18,27 @@ SdfFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``sdf_fn(z_sh (R, D), x_obj (R, S, 3)) -> (R, S)`` signed distance in object units."""
 
 SEARCH_CHUNK = 4
-"""Samples per ray evaluated at a time, front to back. A ray stops once it has a crossing: every
+"""Samples per ray evaluated at a time on the CPU, front to back. A ray stops once it has a crossing: every
 sample before its first sign change is still evaluated, so the result is that of the full
 search, and rays that hit early skip the rest."""
+
+BLOCK_POINTS = 16384
+"""SDF evaluations per block on the CPU: the buffers stay cache-sized."""
+
+ACCEL_BLOCK_POINTS = 1 << 21
+"""SDF evaluations per block on an accelerator, where every sample of a ray is evaluated at once: a GPU step is
+bound by kernel launches and host syncs, not arithmetic, so fewer and larger blocks pay (BENCHMARKS.md, "Training on
+a GPU": 3.3x faster steps at batch 64 on an H200, the same losses)."""
+
+
+def search_plan(device: torch.device, samples: int, block_points: int = 0, chunk: int = 0) -> tuple[int, int]:
+    """``(block_points, chunk)`` of the root search: the values given, or for 0 the device's (on the CPU
+    ``BLOCK_POINTS`` and ``SEARCH_CHUNK``; elsewhere ``ACCEL_BLOCK_POINTS`` and all ``samples`` at once).
+    The crossings found are the same either way."""
+    cpu = device.type == "cpu"
+    block = block_points if block_points > 0 else (BLOCK_POINTS if cpu else ACCEL_BLOCK_POINTS)
+    step = chunk if chunk > 0 else (SEARCH_CHUNK if cpu else samples)
+    return block, min(step, samples)
 
 EPS_DENOM = 1e-9
 """Lower bound of ``f_a - f_b`` in the interpolation. The search guarantees ``f_a > 0 >= f_b``,
@@ -45,7 +63,7 @@ class Crossings:
 @torch.no_grad()
 def find_crossings(
     sdf_fn: SdfFn, z: torch.Tensor, o: torch.Tensor, d: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor,
-    samples: int, refine_steps: int = 0, block_points: int = 16384, track_min: bool = False,
+    samples: int, refine_steps: int = 0, block_points: int = 0, track_min: bool = False,
     chunk: int = 0,
 ) -> Crossings:
     """First +/- sign change of the SDF along each ray, from ``samples`` equidistant samples.
@@ -57,9 +75,10 @@ def find_crossings(
         t_near, t_far: ``(R,)`` interval; samples at ``t_near + j (t_far - t_near) / (samples - 1)``.
         samples: samples per ray (>= 2).
         refine_steps: bisection steps on the bracket after the search.
-        block_points: SDF evaluations per block (bounds memory, keeps buffers cache-sized).
+        block_points: SDF evaluations per block (bounds memory, keeps buffers cache-sized; 0: by device,
+            ``search_plan``).
         track_min: also return, for rays without a crossing, the sample with the least SDF.
-        chunk: samples per ray evaluated at a time (0: ``SEARCH_CHUNK``; >= samples: all at once,
+        chunk: samples per ray evaluated at a time (0: by device, ``search_plan``; >= samples: all at once,
             the plain search that the chunked one reproduces).
     """
     if samples < 2:
@@ -67,7 +86,7 @@ def find_crossings(
     R = o.shape[0]
     dev = o.device
     frac = torch.linspace(0.0, 1.0, samples, dtype=o.dtype, device=dev)
-    chunk = SEARCH_CHUNK if chunk <= 0 else min(chunk, samples)
+    block_points, chunk = search_plan(dev, samples, block_points, chunk)
     rays_per_block = max(1, block_points // chunk)  # ~block_points per SDF call
     # start from empty tensors so that zero rays (all slots culled) give zero crossings
     hit_idx = [torch.zeros(0, dtype=torch.long, device=dev)]

@@ -96,11 +96,12 @@ class RenderSettings:
     """``"ray"``: each ray's exact segment inside the object's box; ``"object"``: the box's depth range."""
     far_depth: float = 12.0
     """Depth given to a pixel where an object is missed (the paper's "large constant")."""
-    block_points: int = 16384
-    """SDF evaluations per block in the no-grad search."""
+    block_points: int = 0
+    """SDF evaluations per block in the no-grad search (0: by device, ``raymarch.search_plan``: 16384 on the CPU,
+    2M on an accelerator)."""
     search_chunk: int = 0
-    """Samples per ray evaluated at a time in the search (0: the default of 4, see
-    ``raymarch.SEARCH_CHUNK``); ``>= samples`` evaluates all at once. Same result either way."""
+    """Samples per ray evaluated at a time in the search (0: by device, ``raymarch.search_plan``: 4 on the CPU, all
+    on an accelerator); ``>= samples`` evaluates all at once. Same result either way."""
     soft_mask_tau: float = 0.0
     """If > 0, also render differentiable soft silhouettes: 1 on hits, sigmoid(-s f_min / tau) on
     rays that miss, with f_min the least SDF along the ray (world units, tau too). For L_mask."""
