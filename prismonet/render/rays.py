@@ -119,22 +119,17 @@ def object_rays(
         rects = projected_box_rects(T_cam_obj, K, height, width, box)
     else:
         rects = torch.tensor([[0, 0, width - 1, height - 1]], dtype=torch.long, device=device).expand(N, 4)
-    objs, pixs = [], []
-    rect_list = rects.tolist()  # one transfer, not one per object, when on an accelerator
-    for n in torch.nonzero(active, as_tuple=False).flatten().tolist():
-        u0, v0, u1, v1 = rect_list[n]
-        if u1 < u0 or v1 < v0:
-            continue  # off-screen
-        vv, uu = torch.meshgrid(torch.arange(v0, v1 + 1, device=device), torch.arange(u0, u1 + 1, device=device), indexing="ij")
-        pix = (vv * width + uu).flatten()
-        pixs.append(pix)
-        objs.append(torch.full_like(pix, n))
-    if not objs:
-        empty = torch.zeros(0, dtype=torch.long, device=device)
+    # every (object, pixel) inside the object's rectangle, objects in order and pixels row-major within each: one
+    # mask and one nonzero for all objects (an off-screen rectangle, u1 < u0, holds no pixel)
+    cols = torch.arange(width, device=device)
+    rows = torch.arange(height, device=device)
+    in_u = (cols[None] >= rects[:, 0:1]) & (cols[None] <= rects[:, 2:3])  # (N, W)
+    in_v = (rows[None] >= rects[:, 1:2]) & (rows[None] <= rects[:, 3:4])  # (N, H)
+    inside = in_v[:, :, None] & in_u[:, None, :] & active.reshape(N, 1, 1)
+    obj, pix = torch.nonzero(inside.reshape(N, height * width), as_tuple=True)
+    if obj.numel() == 0:
         z = torch.zeros(0, dtype=dtype, device=device)
-        return ObjectRays(empty, empty, z, z, torch.zeros(0, 3, dtype=dtype, device=device))
-    obj = torch.cat(objs)
-    pix = torch.cat(pixs)
+        return ObjectRays(obj, pix, z, z, torch.zeros(0, 3, dtype=dtype, device=device))
     u = (pix % width).to(dtype)
     v = (pix // width).to(dtype)
     Kr = K[obj]
@@ -145,7 +140,7 @@ def object_rays(
     if interval == "ray":
         t0, t1 = slab_interval(o_obj, d_obj, box)
     else:
-        c = _corners(box, dtype)
+        c = _corners(box, dtype, device)
         zc = torch.einsum("nj,cj->nc", T_cam_obj[:, 2, :3], c) + T_cam_obj[:, None, 2, 3]  # (N, 8)
         t0, t1 = zc.min(1).values[obj], zc.max(1).values[obj]
     t0 = t0.clamp_min(NEAR_Z)
