@@ -347,3 +347,34 @@ def test_a_tight_box_renders_a_flat_shape_better_with_fewer_rays():
     assert not (box.mask[0, 0] & ~truth).any()
     assert (box.depth[0, 0][box.mask[0, 0]] - tn.reshape(H, W)[box.mask[0, 0]]).abs().max() < 1e-3
     assert box.stats["rays"] < full.stats["rays"]
+
+
+def test_object_rays_cover_each_active_rectangle_in_order():
+    """The one-mask construction gives, per active object in order, the pixels of its projected rectangle row by
+    row: the same list as a loop over objects (the code before session 50)."""
+    from prismonet.render.rays import object_rays, projected_box_rects
+
+    g = torch.Generator().manual_seed(3)
+    N, H, W = 7, 24, 32
+    T_cam_obj = torch.eye(4).repeat(N, 1, 1)
+    T_cam_obj[:, :3, 3] = torch.stack([torch.rand(N, generator=g) * 8 - 4, torch.rand(N, generator=g) * 6 - 3,
+                                       torch.rand(N, generator=g) * 6 + 4], 1)
+    T_cam_obj[0, 0, 3] = 60.0  # off-screen
+    T_cam_obj[:, :3, :3] *= 0.5
+    T_obj_cam = torch.linalg.inv(T_cam_obj)
+    K = torch.tensor([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]]).repeat(N, 1, 1)
+    active = torch.tensor([True, True, False, True, True, True, True])
+    rays = object_rays(T_obj_cam, T_cam_obj, K, active, H, W, interval="object")  # every box is ahead: no ray dropped
+    rects = projected_box_rects(T_cam_obj, K, H, W)
+    objs, pixs = [], []
+    for n in range(N):
+        u0, v0, u1, v1 = rects[n].tolist()
+        if not active[n] or u1 < u0 or v1 < v0:
+            continue
+        for v in range(v0, v1 + 1):
+            for u in range(u0, u1 + 1):
+                objs.append(n)
+                pixs.append(v * W + u)
+    assert rects[0, 2] < rects[0, 0]  # the off-screen object has an empty rectangle
+    assert 0 < len(objs) < (N - 2) * H * W
+    assert rays.obj.tolist() == objs and rays.pix.tolist() == pixs
