@@ -26,9 +26,9 @@ MEASURED = {  # the 16 shipped scenes: feed-forward AP0.5, depth RMSE; AP0.5 wit
     "clevr1to8_keep": {"AP0.5": 0.982, "depth_RMSE": 0.131, "pruned": 0.982, "frame": "world", "stage": "train"},
     "clevr1to8_anchor8k": {"AP0.5": 0.873, "depth_RMSE": 0.131, "pruned": 0.878, "frame": "world", "stage": "train"},
     # session 48: tabletop_anchor with a glimpse refiner that keeps or drops slots, two passes, two re-anchoring steps;
-    # since session 49 its anchor rule reads an evenly darkened composition as a shadow (anchor_shade_min 0.5; without:
-    # AP0.5 0.991, depth RMSE 0.152, pruned 1.0)
-    "tabletop_keep": {"AP0.5": 0.981, "depth_RMSE": 0.153, "pruned": 0.990, "frame": "camera", "stage": "train"},
+    # since session 49 its anchor rule reads an evenly darkened composition as a shadow (anchor_shade_min 0.5); since
+    # session 50 the refiner is fitted 12,000 steps instead of 3,000 (session 49's model: 0.981, 0.153, pruned 0.990)
+    "tabletop_keep": {"AP0.5": 0.965, "depth_RMSE": 0.144, "pruned": 0.965, "frame": "camera", "stage": "train"},
     "tabletop_anchor": {"AP0.5": 0.872, "depth_RMSE": 0.171, "pruned": 0.804, "frame": "camera", "stage": "train"},  # session 45
     "tabletop": {"AP0.5": 0.563, "depth_RMSE": 0.228, "pruned": 0.725, "frame": "camera", "stage": "train"},
 }
