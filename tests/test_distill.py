@@ -198,3 +198,21 @@ def test_keep_loss_hand_computed():
     assert float(keep_loss(logit, t, torch.zeros(2))) == 0.0
     with pytest.raises(DistillError, match="which slots the fit shows"):
         keep_loss(logit, {}, torch.ones(2))
+
+
+def test_targets_made_by_a_refined_model_match_its_encoder():
+    """A later round of self-distillation: targets made by ``chairs_refiner`` (the ``chairs`` encoder with a refinement
+    pass) may be fitted on ``chairs``, and on no other encoder."""
+    from prismonet.cli.train import _made_by_refined
+    from prismonet.model.distill_fit import encoder_digest, weights_digest
+    from prismonet.model.io import load_model
+
+    encoder, refined, other = (load_model(n)[0] for n in ("chairs", "chairs_refiner", "chairs_depth01"))
+    assert encoder_digest(refined) == weights_digest(encoder) == encoder_digest(encoder)
+    assert weights_digest(refined) != weights_digest(encoder)
+    meta = {"model": "chairs_refiner", "model_digest": weights_digest(refined)}
+    assert _made_by_refined(meta, weights_digest(encoder))
+    assert not _made_by_refined(meta, weights_digest(other))
+    assert not _made_by_refined({**meta, "model_digest": "0" * 16}, weights_digest(encoder))  # not the weights named
+    assert not _made_by_refined({"model": "chairs", "model_digest": weights_digest(encoder)}, weights_digest(other))
+    assert not _made_by_refined({"model": "no/such/model"}, weights_digest(encoder))

@@ -63,12 +63,26 @@ def cmd_refiner(args) -> int:
 
     info_path = Path(args.targets) / "targets.json"  # without it fit_refiner says what is missing
     meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
-    if meta and meta.get("model_digest") != weights_digest(base):
+    if meta and meta.get("model_digest") != weights_digest(base) and not _made_by_refined(meta, weights_digest(base)):
         raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {args.checkpoint}'s")
     s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
     print(json.dumps(s))
     print(f"run folder: {args.out}  (model.safetensors + model.json with the refiner, checkpoint.safetensors, log.jsonl)")
     return 0
+
+
+def _made_by_refined(meta: dict, base_digest: str) -> bool:
+    """Whether targets were made by a model with a refinement pass on top of the encoder of digest ``base_digest``
+    (a later round of self-distillation: the refined model's search gives the targets, its encoder is fitted again)."""
+    from prismonet.files import InputError
+    from prismonet.model.distill_fit import encoder_digest, weights_digest
+    from prismonet.model.io import CheckpointError, load_model
+
+    try:
+        maker = load_model(meta["model"])[0]
+    except (KeyError, OSError, ValueError, InputError, CheckpointError):
+        return False
+    return bool(maker.cfg.refine_passes) and weights_digest(maker) == meta.get("model_digest") and encoder_digest(maker) == base_digest
 
 
 def add_parsers(sub) -> None:

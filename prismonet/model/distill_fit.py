@@ -27,6 +27,20 @@ def weights_digest(model) -> str:
     return h.hexdigest()[:16]
 
 
+def encoder_digest(model) -> str:
+    """``weights_digest`` of the model without its refinement pass (the refiner's weights left out): equal to the
+    digest of the model the refiner was fitted on, so targets made by a refined model can be matched to its encoder."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        if name.startswith("refiner."):
+            continue
+        h.update(name.encode())
+        h.update(t.detach().contiguous().cpu().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
 def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int = 16,
                 progress: bool = True, meta: dict | None = None, loss_cfg=None) -> dict:
     """Fit targets for scenes ``0 .. count-1`` of ``ds`` into ``out_dir`` (resumable) with the
