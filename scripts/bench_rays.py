@@ -9,17 +9,13 @@ from __future__ import annotations
 import argparse
 import statistics
 import subprocess
-import time
 import types
 
 import torch
 
+from prismonet.bench.train import step_from, timed_step
 from prismonet.config import load_config
-from prismonet.data.dataset import SceneDataset
-from prismonet.model.io import load_model
-from prismonet.model.losses import compute_losses
-from prismonet.model.prismonet import PriSMONet
-from prismonet.model.trainer import TrainConfig, make_inputs
+from prismonet.model.trainer import TrainConfig
 from prismonet.render import renderer
 
 ap = argparse.ArgumentParser()
@@ -36,28 +32,16 @@ exec(subprocess.run(["git", "show", "4d22b9c:prismonet/render/rays.py"], capture
      old.__dict__)
 VARIANTS = {"loop over objects (4d22b9c)": old.object_rays, "one mask (now)": renderer.object_rays}
 cfg = load_config(TrainConfig, args.config)
-ds = SceneDataset(cfg.data, cfg.split)
-model = PriSMONet(cfg.model)
-model.load_state_dict(load_model(cfg.init_from)[0].state_dict())
-model.train()
-opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-6)
+model, opt, ds = step_from(cfg, cfg.init_from)
 for B in map(int, args.batches.split(",")):
     times = {k: [] for k in VARIANTS}
-    for r in range(args.rounds + 1):
+    for r in range(args.rounds + 1):  # round 0 warms up
         for name, fn in VARIANTS.items():
             renderer.object_rays = fn
             for s in range(args.steps):
-                g = torch.Generator().manual_seed(1000 * r + s)
-                t0 = time.perf_counter()
-                batch = ds.batch(torch.randint(len(ds), (B,), generator=g).tolist())
-                image, depth = make_inputs(batch, cfg, g)
-                out = model(image, batch.K, batch.T_world_cam, batch.ground_z)
-                terms = compute_losses(model, out, batch, cfg.loss, 5000, depth, None)
-                opt.zero_grad(set_to_none=True)
-                terms.total.backward()
-                opt.step()
-                if r > 0:  # round 0 warms up
-                    times[name].append(time.perf_counter() - t0)
+                t = timed_step(model, opt, ds, cfg, B, 1000 * r + s)
+                if r > 0:
+                    times[name].append(t)
     base = statistics.median(times[next(iter(VARIANTS))])
     for name, t in times.items():
         m = statistics.median(t)

@@ -16,6 +16,47 @@ from pathlib import Path
 import torch
 
 
+def step_from(cfg, init_from: str | None = None, device: str = "cpu"):
+    """A model of ``cfg.model`` (with ``init_from``'s weights) on ``device`` in training mode, an Adam over it, and the
+    config's training split: what ``timed_step`` steps."""
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+
+    torch.manual_seed(0)
+    model = PriSMONet(cfg.model)
+    if init_from is not None:
+        model.load_state_dict(load_model(init_from)[0].state_dict())
+    model.to(device).train()
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-6)
+    return model, opt, SceneDataset(cfg.data, cfg.split)
+
+
+def timed_step(model, opt, ds, cfg, batch: int, seed: int, loss_step: int = 5000) -> float:
+    """Seconds of one training step on the model's device, the batch's reading and transfer included: noisy inputs,
+    forward, every loss of ``cfg.loss`` at ``loss_step``, backward, Adam (no clipping), synchronised on CUDA."""
+    from prismonet.model.losses import compute_losses
+    from prismonet.model.trainer import make_inputs
+
+    device = next(model.parameters()).device
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(len(ds), (batch,), generator=g).tolist()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    b = ds.batch(idx).to(device)
+    image, depth = make_inputs(b, cfg, g)
+    out = model(image, b.K, b.T_world_cam, b.ground_z)
+    terms = compute_losses(model, out, b, cfg.loss, loss_step, depth, None)
+    opt.zero_grad(set_to_none=True)
+    terms.total.backward()
+    opt.step()
+    float(terms.total.detach())
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return time.perf_counter() - t0
+
+
 def bench_train(data: str | None, steps: int, batch: int, objects: int, threads: int = 2) -> dict:
     from prismonet.data.clevr import ClevrConfig
     from prismonet.data.dataset import SceneDataset

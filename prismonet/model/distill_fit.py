@@ -15,30 +15,25 @@ from prismonet.model import distill
 from prismonet.model.distill import FIELDS, DistillError
 
 
-def weights_digest(model) -> str:
+def weights_digest(model, skip: str | None = None) -> str:
     """SHA-256 (first 16 hex digits) of a model's weights: targets made by different weights never mix,
-    even under one name (``shipped`` changes when a new model ships)."""
+    even under one name (``shipped`` changes when a new model ships). ``skip``: leave out the weights whose names
+    start with it."""
     import hashlib
 
     h = hashlib.sha256()
     for name, t in sorted(model.state_dict().items()):
+        if skip is not None and name.startswith(skip):
+            continue
         h.update(name.encode())
         h.update(t.detach().contiguous().cpu().numpy().tobytes())
     return h.hexdigest()[:16]
 
 
 def encoder_digest(model) -> str:
-    """``weights_digest`` of the model without its refinement pass (the refiner's weights left out): equal to the
-    digest of the model the refiner was fitted on, so targets made by a refined model can be matched to its encoder."""
-    import hashlib
-
-    h = hashlib.sha256()
-    for name, t in sorted(model.state_dict().items()):
-        if name.startswith("refiner."):
-            continue
-        h.update(name.encode())
-        h.update(t.detach().contiguous().cpu().numpy().tobytes())
-    return h.hexdigest()[:16]
+    """``weights_digest`` of the model without its refinement pass: equal to the digest of the model the refiner was
+    fitted on, so targets made by a refined model can be matched to its encoder."""
+    return weights_digest(model, skip="refiner.")
 
 
 def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int = 16,
