@@ -216,3 +216,51 @@ def test_targets_made_by_a_refined_model_match_its_encoder():
     assert not _made_by_refined({**meta, "model_digest": "0" * 16}, weights_digest(encoder))  # not the weights named
     assert not _made_by_refined({"model": "chairs", "model_digest": weights_digest(encoder)}, weights_digest(other))
     assert not _made_by_refined({"model": "no/such/model"}, weights_digest(encoder))
+
+
+def _write_round(root, visible, offset, count=4, chunk=2, num_slots=2):
+    """A hand-made round of targets: every field of slot k in scene i is ``offset + 10 i + k``; ``visible`` (count, K)."""
+    import json
+
+    from prismonet.checkpoint import save_checkpoint
+
+    root.mkdir(parents=True)
+    base = offset + 10 * torch.arange(count, dtype=torch.float32)[:, None] + torch.arange(num_slots, dtype=torch.float32)
+    full = {"scale": base, "position": base[..., None].expand(-1, -1, 3).clone(), "cos_sin": base[..., None].expand(-1, -1, 2).clone(),
+            "z_tex": base[..., None].expand(-1, -1, 4).clone(), "z_sh": base[..., None].expand(-1, -1, 5).clone(),
+            "bg_color": torch.full((count, 3), float(offset)), "visible": torch.as_tensor(visible, dtype=torch.float32)}
+    for c in range(0, count, chunk):
+        save_checkpoint(root / f"chunk_{c // chunk:05d}.safetensors", {k: v[c:c + chunk] for k, v in full.items()}, {"round": offset})
+    (root / "targets.json").write_text(json.dumps({"count": count, "chunk": chunk, "num_slots": num_slots, "data": "d", "split": "train",
+                                                   "model": f"m{offset}"}))
+
+
+def test_merge_targets_takes_the_later_round_where_it_shows_a_slot(tmp_path):
+    """``scripts/merge_targets.py``: per slot, every field from the later round where it shows the slot (>= 25 pixels), else
+    from the earlier one; ``visible`` the larger; the background the later round's. Rounds that differ are refused in one line."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    later_vis = [[30, 0], [0, 24], [25, 99], [0, 0]]
+    earlier_vis = [[40, 50], [0, 60], [0, 0], [10, 5]]
+    _write_round(tmp_path / "later", later_vis, 1000)
+    _write_round(tmp_path / "earlier", earlier_vis, 2000)
+    script = Path(__file__).resolve().parents[1] / "scripts" / "merge_targets.py"
+    r = subprocess.run([sys.executable, str(script), str(tmp_path / "later"), str(tmp_path / "earlier"), str(tmp_path / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    merged = DistillTargets(tmp_path / "out", 2)
+    take_later = torch.tensor(later_vis) >= 25
+    want = torch.where(take_later, 1000.0, 2000.0) + 10 * torch.arange(4.0)[:, None] + torch.arange(2.0)
+    assert torch.equal(merged.t["scale"], want)
+    assert torch.equal(merged.t["z_sh"][..., 3], want) and torch.equal(merged.t["position"][..., 0], want)
+    assert torch.equal(merged.t["visible"], torch.maximum(torch.tensor(later_vis, dtype=torch.float32), torch.tensor(earlier_vis, dtype=torch.float32)))
+    assert torch.equal(merged.t["bg_color"], torch.full((4, 3), 1000.0))
+    assert json.loads((tmp_path / "out" / "targets.json").read_text())["merged_from"]["later"] == str(tmp_path / "later")
+    _write_round(tmp_path / "three", later_vis + [[0, 0], [0, 0]], 3000, count=6)
+    r = subprocess.run([sys.executable, str(script), str(tmp_path / "three"), str(tmp_path / "earlier"), str(tmp_path / "out2")],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "differ in count" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out2").exists()
