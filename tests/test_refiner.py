@@ -598,3 +598,62 @@ def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
         r = subprocess.run([sys.executable, str(script), name, "2", str(tmp_path / "out"), *extra], capture_output=True, text=True)
         assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "out").exists()
+
+
+def test_color_term_hand_computed():
+    """``refiner_fit.color_term`` with a colour function whose answer is known (the first three latent entries plus
+    the point's x): the squared RGB difference, averaged over points, over the slots the fit shows, then over the
+    scenes with targets; no gradient reaches the targets."""
+    from prismonet.model.refiner_fit import color_points, color_term
+
+    color_fn = lambda z, x: z[..., :3] + x[..., :1]  # the point's part cancels in the difference
+    z = torch.zeros(2, 2, 4, requires_grad=True)
+    zt = torch.zeros(2, 2, 4)
+    zt[0, 0, :3] = torch.tensor([1.0, 2.0, 0.0])  # shown: 5
+    zt[0, 1, 0] = 3.0                             # shown: 9
+    zt[1, 0, 0] = 7.0                             # hidden: not counted
+    zt[1, 1, 3] = 5.0                             # shown, but the fourth entry is no colour: 0
+    targets = {"visible": torch.tensor([[30.0, 25.0], [3.0, 40.0]])}
+    got = color_term(color_fn, z, zt, targets, torch.ones(2), color_points())
+    assert torch.isclose(got, torch.tensor((5 + 9) / 2 / 2 + 0.0 / 2))
+    only_first = color_term(color_fn, z, zt, targets, torch.tensor([1.0, 0.0]), color_points())
+    assert torch.isclose(only_first, torch.tensor(7.0))
+    got.backward()
+    assert z.grad[0, 0, :3].tolist() == pytest.approx([-0.5, -1.0, 0.0]) and float(z.grad[1].abs().sum()) == 0.0
+    assert color_points().shape == (64, 3) and torch.equal(color_points(), color_points())
+
+
+def test_refiner_fit_refuses_a_negative_color_weight():
+    from prismonet.model.refiner_fit import RefinerFitConfig
+
+    with pytest.raises(ValueError, match="color must be >= 0"):
+        RefinerFitConfig(color=-1.0)
+
+
+def test_fit_refiner_with_the_color_term(shipped, tmp_path):
+    """``RefinerFitConfig.color``: targets whose texture latents are the encoder's own start the colour term at 0 (the
+    held-out loss is the shift's alone); targets with other texture latents add it; the run records the weight, and a
+    run without it records none (so runs made before it resume)."""
+    from prismonet.assets import shipped_samples
+    from prismonet.checkpoint import load_checkpoint, save_checkpoint
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    cfg = RefinerFitConfig(steps=2, batch_size=4, holdout=4, checkpoint_every=2, color=1.0)
+    s = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    assert s["held_out_start"] == pytest.approx(0.2, abs=1e-4)
+    assert load_model(tmp_path / "run")[1]["refiner_fit"]["fit"]["color"] == 1.0
+    tensors, meta = load_checkpoint(tmp_path / "t" / "chunk_00000.safetensors")
+    (tmp_path / "t2").mkdir()
+    save_checkpoint(tmp_path / "t2" / "chunk_00000.safetensors", {**tensors, "z_tex": tensors["z_tex"] + 0.5}, meta)
+    (tmp_path / "t2" / "targets.json").write_text((tmp_path / "t" / "targets.json").read_text())
+    start = {}
+    for w in (0.0, 1.0):
+        c = RefinerFitConfig(steps=1, batch_size=4, holdout=4, checkpoint_every=1, color=w)
+        start[w] = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t2", tmp_path / f"run{w}", c, progress=False)["held_out_start"]
+    assert start[1.0] > start[0.0] + 1e-4
+    assert "color" not in load_model(tmp_path / "run0.0")[1]["refiner_fit"]["fit"]

@@ -51,7 +51,7 @@ def cmd_refiner(args) -> int:
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
-                           texture=args.texture)  # validate first
+                           texture=args.texture, color=args.color)  # validate first
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
@@ -116,6 +116,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--lr", type=float, default=3e-4)
     r.add_argument("--holdout", type=int, default=256, help="the last N scenes with targets, held out (logged)")
     r.add_argument("--texture", type=float, default=0.1, help="weight of the texture-latent term")
+    r.add_argument("--color", type=float, default=0.0,
+                   help="weight of the colour term: the texture field's colours under the corrected and the target "
+                        "texture latents, at fixed points of the object frame (0: off)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--glimpse", type=float, default=0.0,
                    help="the refiner sees each slot through a window of this fraction of the image side around its "

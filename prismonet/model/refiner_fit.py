@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from prismonet.model.distill import SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss
+from prismonet.model.distill import SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss, seen_slots
 from prismonet.model.refiner import apply_correction, split_keep
 
 KEEP_WEIGHT = 0.2
@@ -50,13 +50,16 @@ class RefinerFitConfig:
     checkpoint_every: int = 250
     texture: float = 0.1
     """Weight of the texture-latent term (``DistillWeights.texture``)."""
+    color: float = 0.0
+    """Weight of the colour term (``color_term``): the texture field's colours under the corrected and the target
+    texture latents, compared at fixed points of the object frame. 0: off (the fits before session 51)."""
 
     def __post_init__(self) -> None:
         if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0:
             raise ValueError("refiner fit: steps, batch_size, lr and checkpoint_every must be positive and holdout >= 0, got "
                              f"{self.steps}, {self.batch_size}, {self.lr}, {self.checkpoint_every}, {self.holdout}")
-        if self.weight_decay < 0 or self.texture < 0:
-            raise ValueError(f"refiner fit: weight_decay and texture must be >= 0, got {self.weight_decay}, {self.texture}")
+        if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
+            raise ValueError(f"refiner fit: weight_decay, texture and color must be >= 0, got {self.weight_decay}, {self.texture}, {self.color}")
 
 
 def with_refiner(model, passes: int = 1, **fields):
@@ -102,7 +105,33 @@ def cached_refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[
                                 params, b.K, b.T_world_cam)
 
 
-def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
+COLOR_POINTS = 64
+"""Points of the object frame at which ``color_term`` compares colours: fixed, uniform in the shapes' box [-1, 1]^3."""
+
+
+def color_points(n: int = COLOR_POINTS) -> torch.Tensor:
+    """``(n, 3)``: the fixed comparison points (the same for every run: seed 0)."""
+    return torch.rand(n, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+
+def color_term(color_fn, z_tex: torch.Tensor, target_z_tex: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
+               points: torch.Tensor) -> torch.Tensor:
+    """``()``: the squared colour difference (RGB summed, mean over ``points (P, 3)``) of ``color_fn`` under ``z_tex (B, K, D)``
+    and under ``target_z_tex``, the mean over each scene's slots that the fit shows (``seen_slots``; 0 if none), then
+    over the scenes with targets (``mask``). What PSNR measures inside objects, where a squared distance of texture
+    latents weighs every latent direction alike, whether it changes a colour or not."""
+    B, K, D = z_tex.shape
+    x = points.to(z_tex)[None, None].expand(B, K, -1, -1)
+    got = color_fn(z_tex[:, :, None].expand(-1, -1, len(points), -1), x)
+    with torch.no_grad():
+        want = color_fn(target_z_tex[:, :, None].expand(-1, -1, len(points), -1), x)
+    per_slot = ((got - want) ** 2).sum(-1).mean(-1)  # (B, K)
+    shown = seen_slots(targets, per_slot)
+    per_scene = (per_slot * shown).sum(1) / shown.sum(1).clamp_min(1.0)
+    return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
+
+
+def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0) -> torch.Tensor:
     from prismonet.render import SceneParams
 
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
@@ -110,15 +139,18 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)  # every slot moves: the regression sees all
     t, have = targets.lookup(idx)
     loss = distill_loss(new, t["bg_color"], t, have, weights)
+    if color:
+        loss = loss + color * color_term(model.color_fn, new.z_tex, t["z_tex"], t, have, color_points())
     if keep_logit is not None:
         loss = loss + KEEP_WEIGHT * keep_loss(keep_logit.reshape(len(idx), -1), t, have)
     return loss
 
 
-def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128) -> float:
+def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128, color: float = 0.0) -> float:
     model.refiner.eval()
     with torch.no_grad():
-        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights), len(idx[i:i + batch])) for i in range(0, len(idx), batch)]
+        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights, color), len(idx[i:i + batch]))
+                 for i in range(0, len(idx), batch)]
     model.refiner.train()
     return float(sum(l * n for l, n in parts) / max(1, sum(n for _, n in parts)))
 
@@ -159,7 +191,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
-    record = {"fit": {k: v for k, v in asdict(cfg).items() if k != "steps"}, "targets": str(targets_dir), "target_scenes": count}
+    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k == "color" and v == 0)}  # runs before it resume
+    record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
     ckpt = out / "checkpoint.safetensors"
@@ -183,7 +216,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     if step == 0:
         log.write_text("")
         with log.open("a") as f:  # the loss of no correction: where the refiner starts
-            f.write(json.dumps({"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights)}) + "\n")
+            f.write(json.dumps({"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}) + "\n")
 
     def save(at: int) -> None:
         t, d = optimizer_tensors(opt)
@@ -199,7 +232,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
                 g["lr"] = cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
             gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             idx = torch.randint(0, train_n, (cfg.batch_size,), generator=gen)
-            loss = _loss(model, cache, ds, targets, idx, weights)
+            loss = _loss(model, cache, ds, targets, idx, weights, cfg.color)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -207,7 +240,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
             step += 1
             bar.update(1)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                row = {"step": step, "train": sum(losses) / len(losses), "held_out": _held_out_loss(model, cache, ds, targets, held, weights)}
+                row = {"step": step, "train": sum(losses) / len(losses),
+                       "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}
                 losses = []
                 with log.open("a") as f:
                     f.write(json.dumps(row) + "\n")
