@@ -251,3 +251,29 @@ def test_the_other_shapenet_style_priors_ship_with_their_sources(name, shapes):
         inside = prior.decoder(z, grid).reshape(shapes, -1).amin(1)
         corner = prior.decoder(z, torch.tensor([[1.05, 1.05, 1.05]]).expand(shapes, 1, 3))[..., 0]
     assert (inside < 0).all() and (corner > 0).all()
+
+
+def test_fit_code_recovers_a_training_shape_and_nearest_code_names_it():
+    """A training shape of the shipped Clevr prior, encoded again from its SDF samples (the decoder frozen): the fitted
+    code's clamped L1 is as low as the trained code's (within 20 %), and the nearest training code is that shape's own.
+    Bad samples are one clear error."""
+    import numpy as np
+
+    from prismonet.shapes.clevr_set import shape_mesh
+    from prismonet.shapes.code_fit import CodeFitConfig, fit_code, nearest_code
+    from prismonet.shapes.pretrain import clamped_l1
+    from prismonet.shapes.prior import load_prior
+    from prismonet.shapes.sdf_samples import SamplingConfig, sample_sdf
+
+    prior = load_prior()
+    k = 22  # a cube with its own proportions: far from the mean code the fit starts at
+    v, f = shape_mesh(k)
+    p, s = (torch.from_numpy(x) for x in sample_sdf(v, f, SamplingConfig(num_points=8192), np.random.default_rng(3)))
+    with torch.no_grad():
+        own = float(clamped_l1(prior.sdf(prior.latents[k].expand(len(p), -1), p), s, 0.1))
+        start = float(clamped_l1(prior.sdf(prior.latents.mean(0).expand(len(p), -1), p), s, 0.1))
+    z, err = fit_code(prior, p, s, CodeFitConfig(steps=300))
+    assert start > 2 * own and err <= 1.2 * own + 1e-4
+    assert nearest_code(prior, p, s)[0] == k
+    with pytest.raises(ValueError, match="expected points"):
+        fit_code(prior, p, s[:-1])
