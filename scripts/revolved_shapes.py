@@ -14,8 +14,6 @@ nothing of the scenes depends on them (the prior is shape alone).
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -68,21 +66,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--count", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
+    from prismonet.shapes.library import copy_library, write_library_record
+
     src, out = Path(a.src), Path(a.out)
-    if not (src / "models.json").is_file() or a.count <= 0:
-        print(f"revolved_shapes: error: {src} needs a models.json (`prismonet shapes import-furniture`) and --count > 0", file=sys.stderr)
+    if a.count <= 0:
+        print("revolved_shapes: error: --count must be positive", file=sys.stderr)
         return 2
-    if out.exists():
-        print(f"revolved_shapes: error: {out} exists; choose a new folder", file=sys.stderr)
+    try:
+        record = copy_library(src, out)
+    except ValueError as e:
+        print(f"revolved_shapes: error: {e}", file=sys.stderr)
         return 2
     import trimesh
 
-    record = json.loads((src / "models.json").read_text())
-    out.mkdir(parents=True)
-    models = []
-    for m in record["models"]:
-        shutil.copy2(src / m["file"], out / m["file"])
-        models.append(m)
+    models = list(record["models"])
     rng = np.random.default_rng(a.seed)
     for i in range(a.count):
         kind = KINDS[i % len(KINDS)]
@@ -94,9 +91,7 @@ def main(argv: list[str] | None = None) -> int:
                        "file": f"{name}.ply", "faces": int(len(f)), "half_extents": ((v.max(0) - v.min(0)) / 2).round(6).tolist(),
                        "color": [0.7, 0.7, 0.7], "watertight": bool(mesh.is_watertight), "creator": "prismonet scripts/revolved_shapes.py",
                        "licence": "CC0-1.0", "source": {"generated": kind, "seed": a.seed, "index": i}, "split": "seen"})
-    counts = {s: sum(1 for m in models if m["split"] == s) for s in ("seen", "unseen")}
-    (out / "models.json").write_text(json.dumps({**record, "models": models, "counts": counts,
-                                                 "generated": {"from": str(src), "count": a.count, "seed": a.seed}}, indent=1))
+    counts = write_library_record(out, record, models, generated={"from": str(src), "count": a.count, "seed": a.seed})
     print(f"{out}: {counts['seen']} seen models ({a.count} generated), {counts['unseen']} unseen")
     return 0
 

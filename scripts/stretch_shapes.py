@@ -13,8 +13,6 @@ derived shapes; their attributions stay with them.
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -58,20 +56,18 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"stretch_shapes: error: {e}", file=sys.stderr)
         return 2
+    from prismonet.shapes.library import copy_library, write_library_record
+
     src, out = Path(a.src), Path(a.out)
-    if not (src / "models.json").is_file():
-        print(f"stretch_shapes: error: {src} has no models.json (a folder made by `prismonet shapes import-furniture`)", file=sys.stderr)
-        return 2
-    if out.exists():
-        print(f"stretch_shapes: error: {out} exists; choose a new folder", file=sys.stderr)
+    try:
+        record = copy_library(src, out)
+    except ValueError as e:
+        print(f"stretch_shapes: error: {e}", file=sys.stderr)
         return 2
     import trimesh
 
-    record = json.loads((src / "models.json").read_text())
-    out.mkdir(parents=True)
     models = []
     for m in record["models"]:
-        shutil.copy2(src / m["file"], out / m["file"])
         models.append(m)
         if m["split"] != "seen":
             continue
@@ -83,9 +79,7 @@ def main(argv: list[str] | None = None) -> int:
             trimesh.Trimesh(v, faces, process=False).export(out / f"{name}.ply")
             half = ((v.max(0) - v.min(0)) / 2).round(6).tolist()
             models.append({**m, "name": name, "file": f"{name}.ply", "half_extents": half, "stretched_from": m["name"]})
-    counts = {s: sum(1 for m in models if m["split"] == s) for s in ("seen", "unseen")}
-    (out / "models.json").write_text(json.dumps({**record, "models": models, "counts": counts,
-                                                 "stretched": {"from": str(src), "variants": a.stretch}}, indent=1))
+    counts = write_library_record(out, record, models, stretched={"from": str(src), "variants": a.stretch})
     print(f"{out}: {counts['seen']} seen models ({len(variants)} stretched copies of each of {counts['seen'] // (len(variants) + 1)}), "
           f"{counts['unseen']} unseen")
     return 0

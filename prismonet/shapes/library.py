@@ -78,3 +78,27 @@ def shape_library(name: str = CLEVR, split: str = "seen") -> ShapeLibrary:
         specs.append(ShapeSpec(i, c, cats.index(c), count[c], tuple(float(h) for h in m["half_extents"])))
         count[c] += 1
     return ShapeLibrary(str(folder), split, tuple(specs), cats, tuple(str(folder / m["file"]) for m in models))
+
+
+def copy_library(src: str | Path, out: str | Path) -> dict:
+    """Copy an imported folder (``models.json`` and its meshes) into the new folder ``out``, to add models to; returns
+    the ``models.json`` record. ``ValueError`` when ``src`` is not an import or ``out`` exists."""
+    import shutil
+
+    src, out = Path(src), Path(out)
+    if not (src / "models.json").is_file():
+        raise ValueError(f"{src} has no models.json (a folder made by `prismonet shapes import-furniture`)")
+    if out.exists():
+        raise ValueError(f"{out} exists; choose a new folder")
+    record = json.loads((src / "models.json").read_text())
+    out.mkdir(parents=True)
+    for m in record["models"]:
+        shutil.copy2(src / m["file"], out / m["file"])
+    return record
+
+
+def write_library_record(out: str | Path, record: dict, models: list[dict], **extra) -> dict[str, int]:
+    """Write ``out/models.json``: ``record`` with ``models``, their counts per split and ``extra`` fields; returns the counts."""
+    counts = {s: sum(1 for m in models if m["split"] == s) for s in ("seen", "unseen")}
+    (Path(out) / "models.json").write_text(json.dumps({**record, "models": models, "counts": counts, **extra}, indent=1))
+    return counts
