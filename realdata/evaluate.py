@@ -6,7 +6,9 @@ Per photo, against the hand-drawn boxes:
   region the model sees (boxes whose centre lies in the crop or the rectified view's footprint);
 - box AP0.5 and AR0.5: each found slot's box is its instance mask mapped back to photo pixels through
   the crop or the rectification (every mask pixel's corners, through the view-to-photo homography),
-  scored by its visible pixels, matched greedily at IoU >= 0.5 (all-point interpolated AP);
+  scored by its visible pixels, matched greedily at IoU >= 0.5 (all-point interpolated AP); a photo read in
+  tiles (``--tiles``) is scored on its tiles' detections after merging (``realdata.tiles``), and its view is
+  the union of the tiles;
 - foreground IoU inside the model's view, between the union of the true boxes and the union of the
   found boxes (boxes on both sides, so a diagonal pencil counts the same way for both);
 - PSNR of the reconstruction against the prepared input, never alone.
@@ -21,17 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from realdata.boxes import box_iou
+
 IOU_THRESHOLD = 0.5
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``(N, M)`` IoU of boxes ``(N, 4)`` and ``(M, 4)`` given as ``x0, y0, x1, y1``."""
-    a, b = np.asarray(a, np.float64).reshape(-1, 4), np.asarray(b, np.float64).reshape(-1, 4)
-    w = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    h = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    inter = w * h
-    area = lambda x: (x[:, 2] - x[:, 0]) * (x[:, 3] - x[:, 1])
-    return inter / (area(a)[:, None] + area(b)[None, :] - inter)
 
 
 def box_hits(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold: float = IOU_THRESHOLD) -> np.ndarray:
@@ -70,23 +64,6 @@ def box_ap_ar(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, threshold
     return ap_ar(scores, box_hits(pred, scores, truth, threshold), len(truth))
 
 
-def view_to_photo(outline, size: int) -> np.ndarray:
-    """``(3, 3)`` homography from model-view pixels to photo pixels, from the view's outline in the photo."""
-    import cv2
-
-    corners = np.float32([[-0.5, -0.5], [size - 0.5, -0.5], [size - 0.5, size - 0.5], [-0.5, size - 0.5]])
-    return cv2.getPerspectiveTransform(corners, np.float32(outline))
-
-
-def mask_box(mask: np.ndarray, H: np.ndarray) -> tuple[float, float, float, float]:
-    """The photo box of a view mask: every mask pixel's four corners through ``H``."""
-    v, u = np.nonzero(mask)
-    c = np.concatenate([np.stack([u + du, v + dv, np.ones_like(u, dtype=np.float64)], 1) for du in (-0.5, 0.5) for dv in (-0.5, 0.5)])
-    q = c @ H.T
-    xy = q[:, :2] / q[:, 2:]
-    return float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max())
-
-
 def _union_mask(boxes, shape) -> np.ndarray:
     m = np.zeros(shape, bool)
     for x0, y0, x1, y1 in boxes:
@@ -94,35 +71,33 @@ def _union_mask(boxes, shape) -> np.ndarray:
     return m
 
 
-def photo_measures(label, instance: np.ndarray, outline, photo_shape: tuple[int, int], min_pixels: int = 25) -> dict:
-    """The measures of one photo (``instance``: the view's ``(S, S)`` instance ids, 0 = background)."""
+def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[int, int]) -> dict:
+    """The measures of one photo from its found objects (``detections``: ``boxes`` in photo pixels and ``scores``,
+    as ``realdata.reconstruct`` records them) and the outlines of the views that read it (one, or one per tile)."""
     import cv2
 
-    S = instance.shape[0]
-    H = view_to_photo(outline, S)
-    ids, counts = np.unique(instance[instance > 0], return_counts=True)
-    found = [(int(k), int(c)) for k, c in zip(ids, counts) if c >= min_pixels]
-    pred = np.array([mask_box(instance == k, H) for k, _ in found]).reshape(-1, 4)
-    scores = np.array([c for _, c in found], np.float64)
+    pred = np.array(detections["boxes"], np.float64).reshape(-1, 4)
+    scores = np.array(detections["scores"], np.float64)
     truth = np.array(label.boxes).reshape(-1, 4)
     hits = box_hits(pred, scores, truth)
     ap, ar = ap_ar(scores, hits, len(truth))
     view = np.zeros(photo_shape, np.uint8)
-    cv2.fillConvexPoly(view, np.round(np.asarray(outline)).astype(np.int32), 1)
+    for outline in outlines:
+        cv2.fillConvexPoly(view, np.round(np.asarray(outline)).astype(np.int32), 1)
     view = view.astype(bool)
     centres = (truth[:, :2] + truth[:, 2:]) / 2
     in_view = sum(bool(view[min(int(cy), photo_shape[0] - 1), min(int(cx), photo_shape[1] - 1)]) for cx, cy in centres
                   if 0 <= cx < photo_shape[1] and 0 <= cy < photo_shape[0])
     gt_fg, pr_fg = _union_mask(truth, photo_shape) & view, _union_mask(pred, photo_shape) & view
     union = (gt_fg | pr_fg).sum()
-    return {"true_objects": len(truth), "true_in_view": int(in_view), "objects_found": len(found),
+    return {"true_objects": len(truth), "true_in_view": int(in_view), "objects_found": len(pred),
             "box_AP0.5": ap, "box_AR0.5": ar, "foreground_IoU": float((gt_fg & pr_fg).sum() / union) if union else 1.0,
             "boxes": pred.round(1).tolist(), "scores": scores.tolist(), "hits": hits.tolist()}
 
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
-                    elevation=None, label_elevations: bool = False) -> dict:
+                    elevation=None, label_elevations: bool = False, tiles: int = 1, tile_overlap: float = 0.25) -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
     ``elevation`` (degrees, see ``reconstruct_photos``); or with ``label_elevations`` each label's
@@ -135,14 +110,13 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None} if label_elevations else None
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
-                              elevation=elevation, elevation_hints=hints or None)
+                              elevation=elevation, elevation_hints=hints or None, tiles=tiles, tile_overlap=tile_overlap)
     import cv2
 
     rows = []
     for lab, rec in zip(labels, recs):
-        inst = read_image(rec["instance"], cv2.IMREAD_UNCHANGED)
         shape = read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2]
-        m = photo_measures(lab, inst, rec["prepare"]["outline"], shape, min_pixels)
+        m = photo_measures(lab, rec["detections"], rec["outlines"], shape)
         m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"])
         rows.append(m)
     ap, ar = ap_ar(np.concatenate([r["scores"] for r in rows]), np.concatenate([r["hits"] for r in rows]).astype(bool),

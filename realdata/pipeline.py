@@ -11,7 +11,7 @@ import torch
 from prismonet.files import write_image
 from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, table_mapping
 from realdata.io import PhotoError, load_photo
-from realdata.prepare import auto_table_box, crop, resize, undistort
+from realdata.prepare import auto_table_box, crop, resize, table_region, undistort
 
 DEFAULT_TARGET = (150, 150, 150)
 """The synthetic ground colour (ClevrConfig.ground_color)."""
@@ -20,8 +20,10 @@ DEFAULT_TARGET = (150, 150, 150)
 def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, calibration: str | Path | None = None,
                    box: tuple[int, int, int, int] | None = None, normalize: str = "auto",
                    gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET,
-                   view=None, metres_per_unit: float | None = None, own_camera: bool = False) -> list[dict]:
-    """Prepare photos into ``out`` (folder format, no depth). Returns one record per photo.
+                   view=None, metres_per_unit: float | None = None, own_camera: bool = False,
+                   tiles: int = 1, tile_overlap: float = 0.25) -> list[dict]:
+    """Prepare photos into ``out`` (folder format, no depth). Returns one record per prepared image: per photo,
+    or with ``tiles`` > 1 per tile.
 
     Args:
         calibration: FileStorage YAML from ``prismonet calibrate``; undistorts, and gives K. With a
@@ -35,6 +37,10 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         own_camera: with a ground pose, keep the photo's own camera instead of rectifying (for camera-frame
             models, ``pose_frame = "camera"``): the photo is cropped to a square around ``view``'s footprint
             on the table and resized, and takes the calibrated camera, mapped into the model's world.
+        tiles: uncalibrated photos only: read the table region (or ``box``) as overlapping square tiles,
+            ``tiles`` along its shorter side (``realdata.tiles``), each prepared as its own image named
+            ``STEM_tNN``, all with the colour mapping read off the whole region; ``tile_overlap``: the part of a
+            side that neighbouring tiles share.
     """
     from prismonet.data.folder import FOLDER_FORMAT, FOLDER_VERSION
 
@@ -42,6 +48,9 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         raise ValueError(f"normalize: expected auto, none or manual, got {normalize!r}")
     if normalize == "manual" and gain is None:
         raise ValueError("normalize=manual needs a gain (r,g,b)")
+    if tiles > 1 and calibration is not None:
+        raise ValueError("--tiles reads uncalibrated photos (each tile is seen by the training camera); a calibrated photo "
+                         "is rectified to the model's view as a whole")
     stems = [Path(p).stem for p in photos]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
@@ -63,23 +72,26 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     records, first_cam = [], None
     for p in photos:
         img = load_photo(p)
-        if T is not None and own_camera:
-            img, cam, placed = _own_camera(p, img, cal, T, view, size, metres_per_unit)
-        elif T is not None:
-            img, cam, placed = _rectified(p, img, cal, T, view, size, metres_per_unit)
+        if tiles > 1:
+            parts = _tiled(p, img, box, size, tiles, tile_overlap, normalize, gain, target)
         else:
-            img, cam, placed = _cropped(p, img, cal, box, size)
-        mapping, note = _color_mapping(img, normalize, gain, target)
-        if note:
-            placed["warnings"] = [*placed.get("warnings", []), note]
-        img = mapping.apply(img)
-        name = Path(p).stem
-        write_image(out / "rgb" / f"{name}.png", (np.clip(img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
-        record = {"photo": str(p), **placed, "color_mapping": mapping.to_dict(), "camera": cam.to_dict(), "undistorted": cal is not None,
-                  "calibration": None if calibration is None else str(calibration)}
-        (out / "annotations" / f"{name}.json").write_text(json.dumps({"camera": cam.to_dict(), "prepare": record}, indent=1))
-        records.append(record)
-        first_cam = first_cam or cam
+            if T is not None and own_camera:
+                view_img, cam, placed = _own_camera(p, img, cal, T, view, size, metres_per_unit)
+            elif T is not None:
+                view_img, cam, placed = _rectified(p, img, cal, T, view, size, metres_per_unit)
+            else:
+                view_img, cam, placed = _cropped(p, img, cal, box, size)
+            parts = [(Path(p).stem, view_img, cam, placed, _color_mapping(view_img, normalize, gain, target))]
+        for name, view_img, cam, placed, (mapping, note) in parts:
+            if note:
+                placed["warnings"] = [*placed.get("warnings", []), note]
+            view_img = mapping.apply(view_img)
+            write_image(out / "rgb" / f"{name}.png", (np.clip(view_img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
+            record = {"photo": str(p), "name": name, **placed, "color_mapping": mapping.to_dict(), "camera": cam.to_dict(), "undistorted": cal is not None,
+                      "calibration": None if calibration is None else str(calibration)}
+            (out / "annotations" / f"{name}.json").write_text(json.dumps({"camera": cam.to_dict(), "prepare": record}, indent=1))
+            records.append(record)
+            first_cam = first_cam or cam
     (out / "dataset.json").write_text(json.dumps({"format": FOLDER_FORMAT, "version": FOLDER_VERSION, "camera": first_cam.to_dict(),
                                                   "source": "prismonet real prepare"}, indent=2))
     return records
@@ -111,6 +123,35 @@ def _cropped(p, img, cal, box, size):
     x0, y0, w, h = (int(v) for v in b)
     outline = [[x0 - 0.5, y0 - 0.5], [x0 + w - 0.5, y0 - 0.5], [x0 + w - 0.5, y0 + h - 0.5], [x0 - 0.5, y0 + h - 0.5]]
     return img, cam, {"crop_box": [x0, y0, w, h], "outline": outline}
+
+
+def _tiled(p, img, box, size, tiles, overlap, normalize, gain, target) -> list:
+    """The tiles of an uncalibrated photo: ``[(name, image, camera, record fields, (mapping, note))]``, the colour
+    mapping read once off the whole region (a tile full of objects would misread the table)."""
+    from realdata.tiles import inner_edges, tile_boxes
+
+    if box is not None:
+        region = tuple(int(v) for v in box)
+    else:  # the table's bounding box, grown to hold the square a whole-photo reading would crop
+        (tx, ty, tw, th), (sx, sy, side, _) = table_region(img), auto_table_box(img)
+        rx, ry = min(tx, sx), min(ty, sy)
+        region = (rx, ry, max(tx + tw, sx + side) - rx, max(ty + th, sy + side) - ry)
+    x0, y0, w, h = region
+    H, W = img.shape[:2]
+    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
+        raise PhotoError(f"{p}: crop box {region} does not fit in the {W}x{H} photo")
+    mapping = _color_mapping(img[y0 : y0 + h, x0 : x0 + w], normalize, gain, target)
+    n = tiles
+    while n > 1 and tile_boxes(region, n, overlap)[0][2] < size:
+        n -= 1  # no tile smaller than the model's input (upscaling would invent the detail the model reads)
+    note = [] if n == tiles else [f"read as {n} tile{'s' if n > 1 else ''} across, not {tiles}: the region ({w}x{h} px) "
+                                  f"holds no more tiles of at least {size} px"]
+    parts = []
+    for t, tb in enumerate(tile_boxes(region, n, overlap)):
+        view_img, cam, placed = _cropped(p, img, None, tb, size)
+        placed.update(tile=t, tiles=n, warnings=note, tile_overlap=overlap, region=list(region), inner_edges=list(inner_edges(tb, region)))
+        parts.append((f"{Path(p).stem}_t{t:02d}", view_img, cam, placed, mapping))
+    return parts
 
 
 def _photo_in_model(p, img, cal, T, view, size, metres_per_unit):

@@ -47,9 +47,8 @@ TABLE_TOLERANCE = 0.12
 """Max RGB distance (0-1 units) from the table colour for a pixel to count as table."""
 
 
-def auto_table_box(image: np.ndarray) -> tuple[int, int, int, int]:
-    """A square ``(x0, y0, side, side)`` around the table: the bounding box of the largest region
-    of table-coloured pixels (morphologically closed), grown to a square and kept in the photo."""
+def table_region(image: np.ndarray) -> tuple[int, int, int, int]:
+    """``(x0, y0, w, h)``: the bounding box of the largest region of table-coloured pixels (morphologically closed)."""
     import cv2
 
     from realdata.color import estimate_table_color
@@ -63,6 +62,12 @@ def auto_table_box(image: np.ndarray) -> tuple[int, int, int, int]:
         raise PhotoError("no table region found (no large area of one colour)")
     i = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     x, y, w, h = (int(v) for v in stats[i, :4])
+    return x, y, w, h
+
+
+def auto_table_box(image: np.ndarray) -> tuple[int, int, int, int]:
+    """A square ``(x0, y0, side, side)`` around the table (``table_region``), grown to a square and kept in the photo."""
+    x, y, w, h = table_region(image)
     H, W = image.shape[:2]
     side = min(max(w, h), H, W)
     x0 = min(max(0, x + w // 2 - side // 2), W - side)

@@ -34,8 +34,13 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
-                       elevation_hints: dict[str, float] | None = None) -> list[dict]:
-    """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``).
+                       elevation_hints: dict[str, float] | None = None, tiles: int = 1, tile_overlap: float = 0.25) -> list[dict]:
+    """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
+    ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
+
+    ``tiles`` > 1 (uncalibrated photos): each photo is read as overlapping tiles (``realdata.tiles``,
+    ``tiles`` along the table region's shorter side), every tile decoded as its own photo (its figure, latent
+    scene and mesh under ``out/tiles/``), and the tiles' detections merged; the photo's record lists its tiles.
 
     ``elevation``: degrees, for all photos or ``{photo stem: degrees}``: an uncalibrated photo is seen by the
     model's training camera moved to that elevation about the table point it looks at (``orbit_elevation``),
@@ -70,23 +75,28 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         raise ValueError("an elevation needs a model that takes the camera as an input (pose_frame camera, e.g. a "
                          "tabletop model); this one was trained from one camera")
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
-                          view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own)
+                          view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own,
+                          tiles=tiles, tile_overlap=tile_overlap)
     ds = SceneDataset(prepared)
-    by_name = {Path(r["photo"]).stem: r for r in recs}
+    by_name = {r["name"]: r for r in recs}
+    per_view = out / "tiles" if tiles > 1 else out
+    per_view.mkdir(parents=True, exist_ok=True)
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
     results = []
     for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
         b = ds.batch([i])  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
-        own_cam = by_name[ds.names[i]].get("own_camera", False)
-        elev = _for_photo(elevation, ds.names[i])
+        rec = by_name[ds.names[i]]
+        stem = Path(rec["photo"]).stem
+        own_cam = rec.get("own_camera", False)
+        elev = _for_photo(elevation, stem)
         if not own_cam:
             b.K[:] = train_cam.K
             b.T_world_cam[:] = train_cam.T_world_cam if elev is None else orbit_elevation(train_cam.T_world_cam, train_ground, elev)
         b.ground_z[:] = train_ground
-        warnings = list(by_name[ds.names[i]].get("warnings", []))
-        if own_cam and _for_photo(asked, ds.names[i]) is not None:
-            warnings.append(f"elevation {_for_photo(asked, ds.names[i]):g} deg ignored: this photo's calibrated camera is used as it is")
+        warnings = list(rec.get("warnings", []))
+        if own_cam and _for_photo(asked, stem) is not None:
+            warnings.append(f"elevation {_for_photo(asked, stem):g} deg ignored: this photo's calibrated camera is used as it is")
         psnr = {}
 
         def score(step, o, b=b):
@@ -94,31 +104,75 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
 
         o = infer(net, b, cfg, loss_cfg, on_step=score)
         name = ds.names[i]
-        rec = by_name[name]
         photo = load_photo(rec["photo"])
         keep = found_objects(o.composite.instance[0], o.obj_depth.shape[1], min_pixels)
         title = f"{Path(rec['photo']).name}: {len(keep)} objects found (>= {min_pixels} px), PSNR " + " -> ".join(f"{v:.1f}" for v in psnr.values()) + " dB"
-        fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
+        fig = decomposition_figure(b.rgb, o, 0, per_view / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
                                    photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
         scene = LatentScene.from_output(o, b, 0, fp)
-        scene.save(out / f"{name}.json")
-        write_image(out / f"{name}_instance.png", o.composite.instance[0].numpy().astype(np.uint8))
+        scene.save(per_view / f"{name}.json")
+        instance = o.composite.instance[0].numpy().astype(np.uint8)
+        write_image(per_view / f"{name}_instance.png", instance)
         mesh_path = None
         if keep:
             mesh_path = write_mesh(scene_mesh(net, LatentScene.from_output(o, b, 0, fp, slots=keep), resolution),
-                                   out / f"{name}.{mesh_format}")
+                                   per_view / f"{name}.{mesh_format}")
         finite = all(bool(torch.isfinite(t).all()) for t in (o.composite.image, o.composite.depth, o.latents.bg_color,
                                                                o.latents.params.position, o.latents.params.z_sh))
         results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
                         "objects": _objects(o, keep, rec.get("world")),
-                        "figure": str(fig), "scene": str(out / f"{name}.json"), "instance": str(out / f"{name}_instance.png"), "mesh": None if mesh_path is None else str(mesh_path),
+                        "detections": view_detections(instance, rec["outline"], min_pixels), "outlines": [rec["outline"]],
+                        "figure": str(fig), "scene": str(per_view / f"{name}.json"), "instance": str(per_view / f"{name}_instance.png"), "mesh": None if mesh_path is None else str(mesh_path),
                         "camera": "the photo's own calibrated camera" if own_cam else
                         "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
                         else "model's training camera (assumed)" if elev is None
                         else f"model's training camera moved to {elev:g} deg elevation (assumed)", "warnings": warnings,
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
+    if tiles > 1:
+        results = [_merged(photo, [r for r in results if r["photo"] == photo], out) for photo in dict.fromkeys(r["photo"] for r in results)]
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
+
+
+def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS) -> dict:
+    """The found objects of one view (``instance (S, S)``, 0 = background): their boxes in photo pixels (every mask
+    pixel's corners through the view-to-photo map of ``outline``), scores (visible pixels), and whether each mask
+    touches the view's edge (left, top, right, bottom)."""
+    from realdata.boxes import mask_box, view_to_photo
+
+    H = view_to_photo(outline, instance.shape[0])
+    ids, counts = np.unique(instance[instance > 0], return_counts=True)
+    found = [(int(k), int(c)) for k, c in zip(ids, counts) if c >= min_pixels]
+    masks = [instance == k for k, _ in found]
+    return {"boxes": [list(mask_box(m, H)) for m in masks], "scores": [float(c) for _, c in found],
+            "edges": [[bool(m[:, 0].any()), bool(m[0].any()), bool(m[:, -1].any()), bool(m[-1].any())] for m in masks]}
+
+
+def _merged(photo: str, views: list[dict], out: Path) -> dict:
+    """One photo's record from its tiles' records: their detections merged (``realdata.tiles``) and a figure."""
+    from realdata.io import load_photo
+    from prismonet.viz.tiled_photo import tiled_photo_figure
+    from realdata.tiles import merge_detections
+
+    boxes, scores, cut = [], [], []
+    for v in views:
+        inner = v["prepare"]["inner_edges"]
+        for b, s, e in zip(v["detections"]["boxes"], v["detections"]["scores"], v["detections"]["edges"]):
+            boxes.append(b)
+            scores.append(s)
+            cut.append(any(i and t for i, t in zip(inner, e)))
+    boxes_a = np.array(boxes, np.float64).reshape(-1, 4)
+    kept = merge_detections(boxes_a, np.array(scores), np.array(cut, bool))
+    stem = Path(photo).stem
+    img = (np.clip(load_photo(photo), 0, 1) * 255).round().astype(np.uint8)
+    fig = tiled_photo_figure(img, [v["prepare"]["outline"] for v in views], boxes_a, np.array(cut, bool), kept, out / f"{stem}.png")
+    steps = list(views[0]["psnr"])
+    return {"photo": photo, "objects_found": len(kept), "tiles": views, "objects": [], "mesh": None, "scene": None,
+            "detections": {"boxes": [boxes[k] for k in kept], "scores": [scores[k] for k in kept]},
+            "outlines": [v["prepare"]["outline"] for v in views], "figure": str(fig),
+            "camera": views[0]["camera"] + f", per tile ({len(views)} tiles)", "warnings": sorted({w for v in views for w in v["warnings"]}),
+            "finite": all(v["finite"] for v in views), "psnr": {k: float(np.mean([v["psnr"][k] for v in views])) for k in steps},
+            "inference": views[0]["inference"]}
 
 
 def _for_photo(value: float | dict[str, float] | None, name: str) -> float | None:

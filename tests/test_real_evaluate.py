@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from realdata.evaluate import box_ap_ar, box_iou, mask_box, view_to_photo
+from realdata.boxes import box_iou, mask_box, view_to_photo
+from realdata.evaluate import box_ap_ar
 from realdata.labels import LabelError, load_label, load_labels
 
 LABELS = Path(__file__).resolve().parents[1] / "realdata" / "samples" / "labels"

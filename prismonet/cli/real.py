@@ -58,9 +58,13 @@ def cmd_reconstruct(args) -> int:
     cfg = inference_config(args, has_depth=False)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                              elevation=args.elevation)
+                              elevation=args.elevation, tiles=args.tiles, tile_overlap=args.tile_overlap)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
+        if "tiles" in r:
+            print(f"  {r['photo']}: {r['objects_found']} objects found in {len(r['tiles'])} tiles (mean PSNR {psnr} dB); {r['figure']}, "
+                  f"each tile's figure, latent scene and mesh in {args.out}/tiles")
+            continue
         print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
         for obj in r["objects"]:
             if "position_table_m" in obj:
@@ -78,7 +82,8 @@ def cmd_evaluate(args) -> int:
     cfg = inference_config(args, has_depth=False)
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                             elevation=args.elevation, label_elevations=args.label_elevations)
+                             elevation=args.elevation, label_elevations=args.label_elevations, tiles=args.tiles,
+                             tile_overlap=args.tile_overlap)
     print(format_real_table(result))
     print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
@@ -143,4 +148,10 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
                    help="uncalibrated photos: the camera's elevation above the table, by eye (about 80 from above); the "
                         "training camera is moved to it. Only models that take the camera as an input (e.g. a tabletop model); "
                         "a photo with a calibrated ground pose keeps its own camera (a warning says so)")
+    p.add_argument("--tiles", type=arg_int(1, 16), default=1,
+                   help="uncalibrated photos: read the table region as overlapping square tiles, this many along its shorter "
+                        "side, each decoded as its own photo, and merge their objects (for photos with more or smaller objects "
+                        "than the model's view holds; default 1: the whole region at once)")
+    p.add_argument("--tile-overlap", type=arg_float(0.0, 0.9), default=0.25, metavar="FRACTION",
+                   help="the part of a tile's side that neighbouring tiles share (default 0.25)")
     p.add_argument("--quiet", action="store_true")

@@ -1,0 +1,83 @@
+"""Tiled reading of crowded photos: overlapping square tiles, each a scene of its own, and their detections merged.
+
+The model reads a 64-pixel square and has a few slots (8 for the tabletop models). A photo of two dozen coins, or a
+dozen sweets spread over a wide table, puts more objects into one view than it has slots, each only a few pixels
+across. Tiling reads the table region as an ``n``-by-``m`` grid of overlapping square tiles, each prepared and
+decoded as its own photo (uncalibrated: seen by the training camera, as a whole photo is); every object is whole in
+at least one tile when it is smaller than the overlap. The tiles' detections (instance masks mapped back to photo
+boxes) are then merged:
+
+- a detection whose mask touches a tile edge that lies inside the region is *cut* (the object goes on in the
+  next tile); whole detections are taken before cut ones, and larger before smaller (``score``, visible pixels);
+- a detection is dropped when it overlaps one already taken by IoU >= ``MERGE_IOU``, or when
+  ``MERGE_COVER`` of the smaller box lies inside the other (the same object seen whole in one tile and cut in
+  the next).
+
+Each tile's 3-D scene is its own (the training camera is assumed per tile), so tiles give the photo's objects and
+their boxes, not one 3-D scene of the whole table.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+MERGE_IOU = 0.2
+MERGE_COVER = 0.5
+
+
+def tile_boxes(region: tuple[int, int, int, int], tiles: int, overlap: float) -> list[tuple[int, int, int, int]]:
+    """Square tiles ``(x0, y0, side, side)`` covering ``region = (x0, y0, w, h)``: ``tiles`` along its shorter side,
+    neighbours sharing ``overlap`` of a side, and as many along the longer side as cover it at the same or a
+    smaller stride; the tiles of a row (column) are spread evenly from one end of the region to the other."""
+    if tiles < 1:
+        raise ValueError(f"tiles: expected at least 1, got {tiles}")
+    if not 0.0 <= overlap < 1.0:
+        raise ValueError(f"tile overlap: expected a fraction in [0, 1), got {overlap}")
+    x0, y0, w, h = (int(v) for v in region)
+    short = min(w, h)
+    side = short if tiles == 1 else int(math.ceil(short / (1 + (tiles - 1) * (1 - overlap))))
+    side = min(side, short)
+
+    def starts(length: int) -> list[int]:
+        if length <= side:
+            return [0]
+        n = max(2, int(math.ceil((length - side) / (side * (1 - overlap)) - 1e-9)) + 1)
+        return [int(round(i * (length - side) / (n - 1))) for i in range(n)]
+
+    return [(x0 + sx, y0 + sy, side, side) for sy in starts(h) for sx in starts(w)]
+
+
+def inner_edges(tile: tuple[int, int, int, int], region: tuple[int, int, int, int]) -> tuple[bool, bool, bool, bool]:
+    """Which of the tile's edges (left, top, right, bottom) lie inside the region (another tile goes on past them)."""
+    tx, ty, ts, _ = tile
+    rx, ry, rw, rh = region
+    return tx > rx, ty > ry, tx + ts < rx + rw, ty + ts < ry + rh
+
+
+def mask_cut(mask: np.ndarray, inner: tuple[bool, bool, bool, bool]) -> bool:
+    """Whether a view mask ``(S, S)`` touches one of the inner edges (left, top, right, bottom)."""
+    left, top, right, bottom = inner
+    return bool((left and mask[:, 0].any()) or (top and mask[0].any()) or (right and mask[:, -1].any()) or (bottom and mask[-1].any()))
+
+
+def merge_detections(boxes: np.ndarray, scores: np.ndarray, cut: np.ndarray,
+                     iou: float = MERGE_IOU, cover: float = MERGE_COVER) -> np.ndarray:
+    """Indices of the detections kept (in the order taken): whole before cut, then by falling score; one is
+    dropped when it overlaps a kept one by IoU >= ``iou`` or has ``cover`` of the smaller box inside the other."""
+    from realdata.boxes import box_iou
+
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    if len(boxes) == 0:
+        return np.zeros(0, np.int64)
+    order = np.lexsort((-np.asarray(scores, np.float64), np.asarray(cut, bool)))
+    ious = box_iou(boxes, boxes)
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    inter = ious * (area[:, None] + area[None, :]) / (1 + ious)
+    covered = inter / np.minimum(area[:, None], area[None, :])
+    kept: list[int] = []
+    for i in order:
+        if all(ious[i, j] < iou and covered[i, j] < cover for j in kept):
+            kept.append(int(i))
+    return np.array(kept, np.int64)

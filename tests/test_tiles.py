@@ -1,0 +1,95 @@
+"""Tiled reading of crowded photos (``realdata.tiles``): the tile grid, cut detections, merging by hand, and
+``real evaluate --tiles`` end to end on a photo made of two copies of one scene."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from realdata.tiles import inner_edges, mask_cut, merge_detections, tile_boxes
+
+
+def test_tile_grid_covers_the_region_with_the_overlap_asked():
+    # 2 along the shorter side (356) sharing a quarter: side ceil(356 / 1.75) = 204, starts 0 and 152
+    tiles = tile_boxes((28, 0, 413, 356), 2, 0.25)
+    assert {t[2] for t in tiles} == {204} and all(t[2] == t[3] for t in tiles)
+    xs, ys = sorted({t[0] for t in tiles}), sorted({t[1] for t in tiles})
+    assert ys == [0, 152] and xs[0] == 28 and xs[-1] + 204 == 28 + 413
+    assert len(tiles) == len(xs) * len(ys) == 6  # (413 - 204) / (0.75 * 204) = 1.37 -> 3 columns
+    # neighbours share at least the overlap asked, and every pixel of the region is in some tile
+    assert all(b - a <= 0.75 * 204 for a, b in zip(xs, xs[1:])) and ys[1] - ys[0] <= 0.75 * 204
+    cover = np.zeros((356, 413 + 28), bool)
+    for x, y, s, _ in tiles:
+        cover[y : y + s, x : x + s] = True
+    assert cover[:, 28:].all() and not cover[:, :28].any()
+    assert tile_boxes((5, 6, 100, 80), 1, 0.25) == [(5, 6, 80, 80), (25, 6, 80, 80)]  # one across the short side
+    assert tile_boxes((0, 0, 90, 90), 1, 0.5) == [(0, 0, 90, 90)]
+    with pytest.raises(ValueError, match="overlap"):
+        tile_boxes((0, 0, 90, 90), 2, 1.0)
+
+
+def test_inner_edges_and_cut_masks():
+    region = (0, 0, 300, 200)
+    assert inner_edges((0, 0, 120, 120), region) == (False, False, True, True)
+    assert inner_edges((180, 80, 120, 120), region) == (True, True, False, False)
+    m = np.zeros((8, 8), bool)
+    m[3:5, 6:8] = True  # touches the right edge
+    assert mask_cut(m, (False, False, True, False)) and not mask_cut(m, (True, True, False, True))
+
+
+def test_merge_keeps_whole_before_cut_and_drops_duplicates_by_hand():
+    boxes = np.array([[0, 0, 20, 20],     # 0: whole
+                      [0, 0, 8, 8],       # 1: a cut part of the same object: IoU 0.16, but all of it inside box 0 -> dropped
+                      [20, 0, 30, 10],    # 2: cut, nothing else there -> kept
+                      [50, 0, 60, 10],    # 3: whole, small score
+                      [51, 0, 61, 10],    # 4: whole, larger score, IoU 9/11 with 3 -> 3 dropped
+                      [70, 0, 80, 10]])   # 5: whole, alone
+    scores = np.array([50.0, 90.0, 40.0, 10.0, 20.0, 5.0])
+    cut = np.array([False, True, True, False, False, False])
+    assert merge_detections(boxes, scores, cut).tolist() == [0, 4, 5, 2]
+    # a box inside another by less than the cover asked, and overlapping it by IoU under the bar, stays
+    kept = merge_detections(np.array([[0, 0, 10, 10], [7, 0, 17, 10]]), np.array([2.0, 1.0]), np.zeros(2, bool))
+    assert kept.tolist() == [0, 1]  # IoU 30 / 170 = 0.18, 0.3 of the smaller inside
+    assert merge_detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, bool)).tolist() == []
+
+
+def test_real_evaluate_in_tiles_finds_a_scene_twice_side_by_side(tmp_path):
+    """Two copies of one rendered scene side by side make a photo with twice its objects; read in tiles, the
+    merged detections are scored against the true boxes of both copies, and each tile has its own outputs."""
+    import cv2
+
+    from prismonet.assets import SHIPPED_SAMPLES, asset_path
+    from prismonet.data.dataset import SceneDataset
+    from realdata.evaluate import evaluate_photos
+
+    b = SceneDataset(asset_path(SHIPPED_SAMPLES), "test").batch([0])
+    rgb = (b.rgb[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    photo = np.concatenate([rgb, rgb], 1)  # 128 x 64: the region is one tile high, so tiles run across
+    cv2.imwrite(str(tmp_path / "twice.png"), photo[..., ::-1])
+    instance, boxes = b.instance[0].numpy(), []
+    for k in np.unique(instance[instance > 0]):
+        v, u = np.nonzero(instance == k)
+        if len(u) >= 25:
+            for dx in (0, 64):
+                boxes.append([float(u.min()) - 0.5 + dx, float(v.min()) - 0.5, float(u.max()) + 0.5 + dx, float(v.max()) + 0.5])
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    (labels / "twice.json").write_text(json.dumps({"photo": "../twice.png", "objects": [{"box": b} for b in boxes]}))
+    r = evaluate_photos(labels, tmp_path / "e", "shipped", progress=False, box=(0, 0, 128, 64), tiles=2, tile_overlap=0.0)
+    p = r["photos"][0]
+    assert p["true_objects"] == len(boxes) and p["true_in_view"] == len(boxes)
+    summary = json.loads((tmp_path / "e" / "summary.json").read_text())[0]
+    assert [t["prepare"]["crop_box"] for t in summary["tiles"]] == [[0, 0, 64, 64], [64, 0, 64, 64]]
+    assert all(Path(t["figure"]).is_file() and Path(t["scene"]).is_file() for t in summary["tiles"])
+    assert Path(p["figure"]).is_file() and p["objects_found"] == len(summary["detections"]["boxes"])
+    assert any("read as 1 tile across, not 2" in w for w in summary["warnings"])  # 64 px high: one tile across
+    # each tile is the scene itself, as the shipped model was trained on it: most objects are found in both
+    assert p["box_AR0.5"] >= 0.5
+
+
+def test_tiles_are_refused_with_a_calibration(tmp_path):
+    from realdata.pipeline import prepare_photos
+
+    with pytest.raises(ValueError, match="uncalibrated"):
+        prepare_photos([str(tmp_path / "x.png")], tmp_path / "o", calibration=tmp_path / "c.yaml", tiles=2)
