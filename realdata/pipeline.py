@@ -10,6 +10,7 @@ import torch
 
 from prismonet.files import write_image
 from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, table_mapping
+from realdata.illumination import flatten_light
 from realdata.io import PhotoError, load_photo
 from realdata.prepare import auto_table_box, crop, resize, table_region, undistort
 
@@ -21,7 +22,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
                    box: tuple[int, int, int, int] | None = None, normalize: str = "auto",
                    gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET,
                    view=None, metres_per_unit: float | None = None, own_camera: bool = False,
-                   tiles: int = 1, tile_overlap: float = 0.25) -> list[dict]:
+                   tiling=None) -> list[dict]:
     """Prepare photos into ``out`` (folder format, no depth). Returns one record per prepared image: per photo,
     or with ``tiles`` > 1 per tile.
 
@@ -31,23 +32,24 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             plane (``realdata.rectify``) with the world map of ``realdata.world`` (recorded per photo),
             and takes ``view``'s camera; without one, it is cropped and resized.
         box: crop ``(x0, y0, w, h)``; default: automatic, around the table region (not with a ground pose).
-        normalize: ``"auto"`` (table colour -> ``target``), ``"none"``, or ``"manual"`` with ``gain``.
+        normalize: ``"auto"`` (table colour -> ``target``), ``"flat"`` (the table's uneven light divided out first,
+            ``realdata.illumination``, then as ``"auto"``), ``"none"``, or ``"manual"`` with ``gain``.
         view: ``(Camera, ground_z)`` to rectify to, in model units (default: the CLEVR camera at ``size``).
         metres_per_unit: the world scale; default: derived from the camera distances (``WorldMapping.derive``).
         own_camera: with a ground pose, keep the photo's own camera instead of rectifying (for camera-frame
             models, ``pose_frame = "camera"``): the photo is cropped to a square around ``view``'s footprint
             on the table and resized, and takes the calibrated camera, mapped into the model's world.
-        tiles: uncalibrated photos only: read the table region (or ``box``) as overlapping square tiles,
-            ``tiles`` along its shorter side (``realdata.tiles``), each prepared as its own image named
-            ``STEM_tNN``, all with the colour mapping read off the whole region; ``tile_overlap``: the part of a
-            side that neighbouring tiles share.
+        tiling: a ``realdata.tiles.TileConfig``, uncalibrated photos only: read the table region (or ``box``)
+            as overlapping square tiles, each prepared as its own image named ``STEM_tNN``, with the colour
+            mapping read off the whole region or off each tile.
     """
     from prismonet.data.folder import FOLDER_FORMAT, FOLDER_VERSION
 
-    if normalize not in ("auto", "none", "manual"):
-        raise ValueError(f"normalize: expected auto, none or manual, got {normalize!r}")
+    if normalize not in ("auto", "flat", "none", "manual"):
+        raise ValueError(f"normalize: expected auto, flat, none or manual, got {normalize!r}")
     if normalize == "manual" and gain is None:
         raise ValueError("normalize=manual needs a gain (r,g,b)")
+    tiles = 1 if tiling is None else tiling.tiles
     if tiles > 1 and calibration is not None:
         raise ValueError("--tiles reads uncalibrated photos (each tile is seen by the training camera); a calibrated photo "
                          "is rectified to the model's view as a whole")
@@ -72,8 +74,12 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     records, first_cam = [], None
     for p in photos:
         img = load_photo(p)
+        flat = None
+        if normalize == "flat":
+            img, field = flatten_light(img)
+            flat = {"field_min": float(field.min()), "field_max": float(field.max())}
         if tiles > 1:
-            parts = _tiled(p, img, box, size, tiles, tile_overlap, normalize, gain, target)
+            parts = _tiled(p, img, box, size, tiling, normalize, gain, target)
         else:
             if T is not None and own_camera:
                 view_img, cam, placed = _own_camera(p, img, cal, T, view, size, metres_per_unit)
@@ -87,6 +93,8 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
                 placed["warnings"] = [*placed.get("warnings", []), note]
             view_img = mapping.apply(view_img)
             write_image(out / "rgb" / f"{name}.png", (np.clip(view_img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
+            if flat is not None:
+                placed["light_field"] = flat
             record = {"photo": str(p), "name": name, **placed, "color_mapping": mapping.to_dict(), "camera": cam.to_dict(), "undistorted": cal is not None,
                       "calibration": None if calibration is None else str(calibration)}
             (out / "annotations" / f"{name}.json").write_text(json.dumps({"camera": cam.to_dict(), "prepare": record}, indent=1))
@@ -114,7 +122,7 @@ def _cropped(p, img, cal, box, size):
         K = torch.tensor(cal.K, dtype=torch.float32)
     else:
         K = intrinsics_matrix(float(W), float(W), (W - 1) / 2, (H - 1) / 2)
-    b = box if box is not None else auto_table_box(img)
+    b = box if box is not None else auto_table_box(img, min_side=size)
     img, cam = crop(img, Camera(K, torch.eye(4), H, W), b)
     if min(img.shape[:2]) < size:
         raise PhotoError(f"{p}: the crop is {img.shape[1]}x{img.shape[0]} px, smaller than the {size}x{size} model input; "
@@ -125,15 +133,15 @@ def _cropped(p, img, cal, box, size):
     return img, cam, {"crop_box": [x0, y0, w, h], "outline": outline}
 
 
-def _tiled(p, img, box, size, tiles, overlap, normalize, gain, target) -> list:
+def _tiled(p, img, box, size, tiling, normalize, gain, target) -> list:
     """The tiles of an uncalibrated photo: ``[(name, image, camera, record fields, (mapping, note))]``, the colour
-    mapping read once off the whole region (a tile full of objects would misread the table)."""
+    mapping read once off the whole region (``tiling.color`` "region") or off each tile ("tile")."""
     from realdata.tiles import inner_edges, tile_boxes
 
     if box is not None:
         region = tuple(int(v) for v in box)
     else:  # the table's bounding box, grown to hold the square a whole-photo reading would crop
-        (tx, ty, tw, th), (sx, sy, side, _) = table_region(img), auto_table_box(img)
+        (tx, ty, tw, th), (sx, sy, side, _) = table_region(img), auto_table_box(img, min_side=size)
         rx, ry = min(tx, sx), min(ty, sy)
         region = (rx, ry, max(tx + tw, sx + side) - rx, max(ty + th, sy + side) - ry)
     x0, y0, w, h = region
@@ -141,7 +149,7 @@ def _tiled(p, img, box, size, tiles, overlap, normalize, gain, target) -> list:
     if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
         raise PhotoError(f"{p}: crop box {region} does not fit in the {W}x{H} photo")
     mapping = _color_mapping(img[y0 : y0 + h, x0 : x0 + w], normalize, gain, target)
-    n = tiles
+    tiles, overlap, n = tiling.tiles, tiling.overlap, tiling.tiles
     while n > 1 and tile_boxes(region, n, overlap)[0][2] < size:
         n -= 1  # no tile smaller than the model's input (upscaling would invent the detail the model reads)
     note = [] if n == tiles else [f"read as {n} tile{'s' if n > 1 else ''} across, not {tiles}: the region ({w}x{h} px) "
@@ -150,7 +158,8 @@ def _tiled(p, img, box, size, tiles, overlap, normalize, gain, target) -> list:
     for t, tb in enumerate(tile_boxes(region, n, overlap)):
         view_img, cam, placed = _cropped(p, img, None, tb, size)
         placed.update(tile=t, tiles=n, warnings=note, tile_overlap=overlap, region=list(region), inner_edges=list(inner_edges(tb, region)))
-        parts.append((f"{Path(p).stem}_t{t:02d}", view_img, cam, placed, mapping))
+        own = _color_mapping(view_img, normalize, gain, target) if tiling.color == "tile" else mapping
+        parts.append((f"{Path(p).stem}_t{t:02d}", view_img, cam, placed, own))
     return parts
 
 
@@ -215,7 +224,7 @@ def _own_camera(p, img, cal, T, view, size, metres_per_unit):
 
 def _color_mapping(img, normalize, gain, target) -> tuple[ColorMapping, str | None]:
     """The mapping, and a warning when the automatic one could not reach the target within its limits."""
-    if normalize == "auto":
+    if normalize in ("auto", "flat"):
         table, goal = estimate_table_color(img), np.asarray(target) / 255.0
         m = table_mapping(table, goal)
         if mapping_limited(table, goal, m):

@@ -34,12 +34,12 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
-                       elevation_hints: dict[str, float] | None = None, tiles: int = 1, tile_overlap: float = 0.25) -> list[dict]:
+                       elevation_hints: dict[str, float] | None = None, tiling=None) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
     ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
 
-    ``tiles`` > 1 (uncalibrated photos): each photo is read as overlapping tiles (``realdata.tiles``,
-    ``tiles`` along the table region's shorter side), every tile decoded as its own photo (its figure, latent
+    ``tiling`` (``realdata.tiles.TileConfig``, uncalibrated photos): each photo is read as overlapping tiles
+    (``tiling.tiles`` along the table region's shorter side), every tile decoded as its own photo (its figure, latent
     scene and mesh under ``out/tiles/``), and the tiles' detections merged; the photo's record lists its tiles.
 
     ``elevation``: degrees, for all photos or ``{photo stem: degrees}``: an uncalibrated photo is seen by the
@@ -48,6 +48,11 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     (``pose_frame = "camera"``); the others know one camera. ``elevation_hints`` (``{photo stem: degrees}``,
     e.g. the labels' ``elevation_deg``): used as ``elevation`` when that is not given and the model takes
     the camera as an input, ignored otherwise."""
+    if tiling is not None and tiling.tiles > 1 and tiling.below_px is not None:
+        return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
+                                  objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
+                                  inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
+                                  elevation_hints=elevation_hints)
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
@@ -76,7 +81,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                          "tabletop model); this one was trained from one camera")
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
                           view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own,
-                          tiles=tiles, tile_overlap=tile_overlap)
+                          tiling=tiling)
+    tiles = 1 if tiling is None else tiling.tiles
     ds = SceneDataset(prepared)
     by_name = {r["name"]: r for r in recs}
     per_view = out / "tiles" if tiles > 1 else out
@@ -130,6 +136,24 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                         "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
     if tiles > 1:
         results = [_merged(photo, [r for r in results if r["photo"] == photo], out) for photo in dict.fromkeys(r["photo"] for r in results)]
+    (out / "summary.json").write_text(json.dumps(results, indent=1))
+    return results
+
+
+def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
+    """``TileConfig.below_px``: read every photo whole (into ``out/whole``), then in tiles those whose objects are small
+    (or none found); each record says which reading it is (``reading``) and the whole reading's median object size."""
+    from dataclasses import replace
+
+    out = Path(out)
+    whole = reconstruct_photos(photos, out / "whole", tiling=None, **kw)
+    size = {r["photo"]: float(np.median(r["detections"]["scores"])) if r["detections"]["scores"] else 0.0 for r in whole}
+    small = [str(p) for p in photos if size[str(p)] < tiling.below_px]
+    tiled = {r["photo"]: r for r in reconstruct_photos(small, out, tiling=replace(tiling, below_px=None), **kw)} if small else {}
+    results = []
+    for r in whole:
+        rec = tiled.get(r["photo"], r)
+        results.append({**rec, "reading": "tiles" if r["photo"] in tiled else "whole", "whole_median_px": size[r["photo"]]})
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 

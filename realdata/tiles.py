@@ -23,8 +23,38 @@ import math
 
 import numpy as np
 
+from dataclasses import dataclass
+
 MERGE_IOU = 0.2
 MERGE_COVER = 0.5
+
+
+@dataclass(frozen=True)
+class TileConfig:
+    """How to read a photo in tiles."""
+
+    tiles: int = 2
+    """Tiles along the region's shorter side (1: the whole region at once)."""
+    overlap: float = 0.25
+    """The part of a tile's side that neighbouring tiles share."""
+    color: str = "region"
+    """Where the colour mapping is read: ``"region"`` (once, off the whole table region) or ``"tile"`` (off each tile)."""
+    below_px: float | None = None
+    """Tile only the photos whose whole reading finds objects of a median size under this many visible pixels (of the
+    model's view), or that find none; the others keep their whole reading (``None``: tile every photo)."""
+
+    def __post_init__(self):
+        if self.tiles < 1:
+            raise ValueError(f"tiles: expected at least 1, got {self.tiles}")
+        if not 0.0 <= self.overlap < 1.0:
+            raise ValueError(f"tile overlap: expected a fraction in [0, 1), got {self.overlap}")
+        if self.below_px is not None and not self.below_px > 0:
+            raise ValueError(f"tile size rule: expected a positive number of pixels, got {self.below_px}")
+        if self.color not in ("region", "tile"):
+            raise ValueError(f"tile colour mapping: expected region or tile, got {self.color!r}")
+
+    def record(self) -> dict:
+        return {"tiles": self.tiles, "overlap": self.overlap, "color": self.color, "below_px": self.below_px}
 
 
 def tile_boxes(region: tuple[int, int, int, int], tiles: int, overlap: float) -> list[tuple[int, int, int, int]]:

@@ -4,7 +4,9 @@ The real-photo path (``prismonet real evaluate``) has five labelled photos and n
 chosen on them. Synthetic scenes rendered larger than the model's input and more crowded than its training
 scenes stand in for them. Each becomes a PNG and a label with one box per object whose visible part is at least
 ``--min-fraction`` of the image (boxes from the instance mask, the outermost pixels' corners, as the hand labels),
-and the camera's true elevation above the table (``elevation_deg``).
+and the camera's true elevation above the table (``elevation_deg``). ``--uneven S`` darkens and brightens each photo
+by a smooth field, as uneven light and lens vignetting do in real photos: a linear gradient of ±S in a random
+direction times a radial fall-off to 1 - S/2 in the corners (seeded per photo).
 
     python3 -m prismonet data clevr --randomize --randomize-range focal_scale=0.8,1.8 \
         --randomize-range camera_elevation_deg=18,85 --objects 20 --min-objects 8 --area 4 --size 192 --shadows \
@@ -38,6 +40,14 @@ def scene_label(instance: np.ndarray, min_fraction: float) -> list[list[float]]:
     return boxes
 
 
+def uneven_light(shape: tuple[int, int], strength: float, rng: np.random.Generator) -> np.ndarray:
+    """``(H, W, 1)`` multiplicative field: ``(1 + S (cos t x + sin t y)) (1 - S / 4 (x^2 + y^2))`` on ``[-1, 1]^2``."""
+    H, W = shape
+    y, x = np.meshgrid(np.linspace(-1, 1, H), np.linspace(-1, 1, W), indexing="ij")
+    t = rng.uniform(0, 2 * np.pi)
+    return ((1 + strength * (np.cos(t) * x + np.sin(t) * y)) * (1 - strength / 4 * (x**2 + y**2)))[..., None]
+
+
 def main() -> None:
     import cv2
 
@@ -49,6 +59,8 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--min-fraction", type=float, default=0.003, help="least visible part of the image for a labelled object")
+    ap.add_argument("--uneven", type=float, default=0.0, help="strength of the uneven light field (default 0: none)")
+    ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     ds = SceneDataset(args.data, args.split)
     out = Path(args.out)
@@ -57,7 +69,10 @@ def main() -> None:
     counts = []
     for i in range(n):
         b = ds.batch([i])
-        rgb = (b.rgb[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        rgb = b.rgb[0].permute(1, 2, 0).numpy()
+        if args.uneven:
+            rgb = rgb * uneven_light(rgb.shape[:2], args.uneven, np.random.default_rng([args.seed, i]))
+        rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
         cv2.imwrite(str(out / "photos" / f"scene_{i:04d}.png"), rgb[..., ::-1])
         boxes = scene_label(b.instance[0].numpy(), args.min_fraction)
         counts.append(len(boxes))

@@ -153,6 +153,12 @@ def test_auto_table_box_finds_the_table():
 
     x0, y0, w, h = auto_table_box(img)
     assert w == h == 280 and 0 <= y0 <= 100 and y0 + h >= 280 and x0 <= 50 and x0 + w >= 330 - 1
+    # a table found only as a fragment smaller than the model's input: the largest centred square instead
+    frag = np.random.default_rng(0).uniform(0, 1, (300, 400, 3)).astype(np.float32)  # no colour dominates...
+    frag[200:230, 10:50] = [0.5, 0.45, 0.4]  # ...but this small patch of table
+    x0, y0, w, h = auto_table_box(frag)
+    assert w == h < 64 and x0 <= 10 and y0 <= 200 and x0 + w >= 50 and y0 + h >= 230
+    assert auto_table_box(frag, min_side=64) == (50, 0, 300, 300)
 
 
 def test_block_tower_reader_on_a_fixture(tmp_path):

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from realdata.tiles import inner_edges, mask_cut, merge_detections, tile_boxes
+from realdata.tiles import TileConfig, inner_edges, mask_cut, merge_detections, tile_boxes
 
 
 def test_tile_grid_covers_the_region_with_the_overlap_asked():
@@ -76,7 +76,7 @@ def test_real_evaluate_in_tiles_finds_a_scene_twice_side_by_side(tmp_path):
     labels = tmp_path / "labels"
     labels.mkdir()
     (labels / "twice.json").write_text(json.dumps({"photo": "../twice.png", "objects": [{"box": b} for b in boxes]}))
-    r = evaluate_photos(labels, tmp_path / "e", "shipped", progress=False, box=(0, 0, 128, 64), tiles=2, tile_overlap=0.0)
+    r = evaluate_photos(labels, tmp_path / "e", "shipped", progress=False, box=(0, 0, 128, 64), tiling=TileConfig(2, 0.0))
     p = r["photos"][0]
     assert p["true_objects"] == len(boxes) and p["true_in_view"] == len(boxes)
     summary = json.loads((tmp_path / "e" / "summary.json").read_text())[0]
@@ -86,10 +86,16 @@ def test_real_evaluate_in_tiles_finds_a_scene_twice_side_by_side(tmp_path):
     assert any("read as 1 tile across, not 2" in w for w in summary["warnings"])  # 64 px high: one tile across
     # each tile is the scene itself, as the shipped model was trained on it: most objects are found in both
     assert p["box_AR0.5"] >= 0.5
+    # the size rule: objects of a median size under 1e6 px are "small" (tiled); none is under 1 px (kept whole)
+    for below, reading in ((1e6, "tiles"), (1.0, "whole")):
+        r = evaluate_photos(labels, tmp_path / f"rule{below:g}", "shipped", progress=False, box=(0, 0, 128, 64),
+                            tiling=TileConfig(2, 0.0, below_px=below))
+        s = json.loads((tmp_path / f"rule{below:g}" / "summary.json").read_text())[0]
+        assert s["reading"] == reading and s["whole_median_px"] > 1.0 and ("tiles" in s) == (reading == "tiles")
 
 
 def test_tiles_are_refused_with_a_calibration(tmp_path):
     from realdata.pipeline import prepare_photos
 
     with pytest.raises(ValueError, match="uncalibrated"):
-        prepare_photos([str(tmp_path / "x.png")], tmp_path / "o", calibration=tmp_path / "c.yaml", tiles=2)
+        prepare_photos([str(tmp_path / "x.png")], tmp_path / "o", calibration=tmp_path / "c.yaml", tiling=TileConfig(2))

@@ -20,6 +20,13 @@ def box_and_gain(args):
     return box, gain
 
 
+def _tiling(args):
+    """``--tiles``, ``--tile-overlap`` and ``--tile-color`` as a ``TileConfig`` (``None``: the whole region at once)."""
+    from realdata.tiles import TileConfig
+
+    return None if args.tiles == 1 else TileConfig(args.tiles, args.tile_overlap, args.tile_color, args.tile_below)
+
+
 def _warn(recs: list[dict]) -> None:
     for r in recs:
         for w in r.get("warnings", []):
@@ -58,7 +65,7 @@ def cmd_reconstruct(args) -> int:
     cfg = inference_config(args, has_depth=False)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                              elevation=args.elevation, tiles=args.tiles, tile_overlap=args.tile_overlap)
+                              elevation=args.elevation, tiling=_tiling(args))
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         if "tiles" in r:
@@ -82,8 +89,7 @@ def cmd_evaluate(args) -> int:
     cfg = inference_config(args, has_depth=False)
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                             elevation=args.elevation, label_elevations=args.label_elevations, tiles=args.tiles,
-                             tile_overlap=args.tile_overlap)
+                             elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args))
     print(format_real_table(result))
     print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
@@ -102,7 +108,9 @@ def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
                    help="metres per model unit (with a ground calibration; default: derived so that the photo camera is as far "
                         "from the table point it looks at as the training camera)")
     p.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
-    p.add_argument("--normalize", default="auto", choices=["auto", "none", "manual"])
+    p.add_argument("--normalize", default="auto", choices=["auto", "flat", "none", "manual"],
+                   help="auto: map the table colour onto the training ground's; flat: first divide out the table's uneven "
+                        "light (a smooth field fitted to its pixels); none; manual (with --gain)")
     p.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
 
 
@@ -154,4 +162,9 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
                         "than the model's view holds; default 1: the whole region at once)")
     p.add_argument("--tile-overlap", type=arg_float(0.0, 0.9), default=0.25, metavar="FRACTION",
                    help="the part of a tile's side that neighbouring tiles share (default 0.25)")
+    p.add_argument("--tile-color", choices=["region", "tile"], default="region",
+                   help="read the colour mapping off the whole table region (default) or off each tile")
+    p.add_argument("--tile-below", type=arg_float(0.0, 1e6, positive=True), metavar="PX",
+                   help="tile only the photos whose whole reading finds objects of a median size under PX visible pixels of the "
+                        "model's view (or none); the rest keep the whole reading (default: tile every photo)")
     p.add_argument("--quiet", action="store_true")
