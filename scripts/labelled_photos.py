@@ -6,7 +6,8 @@ scenes stand in for them. Each becomes a PNG and a label with one box per object
 ``--min-fraction`` of the image (boxes from the instance mask, the outermost pixels' corners, as the hand labels),
 and the camera's true elevation above the table (``elevation_deg``). ``--uneven S`` darkens and brightens each photo
 by a smooth field, as uneven light and lens vignetting do in real photos: a linear gradient of ±S in a random
-direction times a radial fall-off to 1 - S/2 in the corners (seeded per photo).
+direction times a radial fall-off to 1 - S/2 in the corners (seeded per photo). ``--exposure LO,HI`` makes each photo
+darker or brighter by one factor, log-uniform in [LO, HI] (clipped), as a camera's exposure does.
 
     python3 -m prismonet data clevr --randomize --randomize-range focal_scale=0.8,1.8 \
         --randomize-range camera_elevation_deg=18,85 --objects 20 --min-objects 8 --area 4 --size 192 --shadows \
@@ -60,6 +61,8 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--min-fraction", type=float, default=0.003, help="least visible part of the image for a labelled object")
     ap.add_argument("--uneven", type=float, default=0.0, help="strength of the uneven light field (default 0: none)")
+    ap.add_argument("--exposure", default=None, metavar="LO,HI",
+                    help="multiply each photo by an exposure drawn log-uniformly in [LO, HI], then clip (default: none)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     ds = SceneDataset(args.data, args.split)
@@ -70,8 +73,12 @@ def main() -> None:
     for i in range(n):
         b = ds.batch([i])
         rgb = b.rgb[0].permute(1, 2, 0).numpy()
+        rng = np.random.default_rng([args.seed, i])
         if args.uneven:
-            rgb = rgb * uneven_light(rgb.shape[:2], args.uneven, np.random.default_rng([args.seed, i]))
+            rgb = rgb * uneven_light(rgb.shape[:2], args.uneven, rng)
+        if args.exposure:
+            lo, hi = (float(v) for v in args.exposure.split(","))
+            rgb = rgb * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
         rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
         cv2.imwrite(str(out / "photos" / f"scene_{i:04d}.png"), rgb[..., ::-1])
         boxes = scene_label(b.instance[0].numpy(), args.min_fraction)
