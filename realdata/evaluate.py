@@ -110,7 +110,7 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None} if label_elevations else None
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
-                              elevation=elevation, elevation_hints=hints or None, tiling=tiling)
+                              elevation=elevation, elevation_hints=hints or None, tiling=tiling, meshes=False)
     import cv2
 
     rows = []

@@ -21,6 +21,8 @@ import torch
 
 MIN_PIXELS = 25
 """Visible pixels for a slot to count as a found object (the paper's 25-pixel rule)."""
+BATCH = 16
+"""Prepared views (photos or tiles) decoded together."""
 
 
 def found_objects(instance: torch.Tensor, num_slots: int, min_pixels: int = MIN_PIXELS) -> list[int]:
@@ -34,9 +36,12 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
-                       elevation_hints: dict[str, float] | None = None, tiling=None) -> list[dict]:
+                       elevation_hints: dict[str, float] | None = None, tiling=None, meshes: bool = True) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
     ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
+
+    The prepared views (photos, or tiles) are decoded ``BATCH`` at a time. ``meshes``: write each view's mesh of
+    the objects found (``real evaluate`` does not).
 
     ``tiling`` (``realdata.tiles.TileConfig``, uncalibrated photos): each photo is read as overlapping tiles
     (``tiling.tiles`` along the table region's shorter side), every tile decoded as its own photo (its figure, latent
@@ -52,7 +57,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
                                   inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
-                                  elevation_hints=elevation_hints)
+                                  elevation_hints=elevation_hints, meshes=meshes)
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
@@ -60,11 +65,6 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from prismonet.geometry.camera import orbit_elevation
     from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_camera, training_loss_config
-    from prismonet.files import write_image
-    from prismonet.scene import LatentScene
-    from prismonet.scene.export import scene_mesh, write_mesh
-    from prismonet.viz.decomposition import decomposition_figure
-    from realdata.io import load_photo
     from realdata.pipeline import prepare_photos
 
     cfg = (inference or InferenceConfig()).without_depth()  # a photo has no depth
@@ -90,54 +90,73 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
     results = []
-    for i in tqdm(range(len(ds)), desc="reconstruct", unit="photo", disable=not progress):
-        b = ds.batch([i])  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
-        rec = by_name[ds.names[i]]
-        stem = Path(rec["photo"]).stem
-        own_cam = rec.get("own_camera", False)
-        elev = _for_photo(elevation, stem)
-        if not own_cam:
-            b.K[:] = train_cam.K
-            b.T_world_cam[:] = train_cam.T_world_cam if elev is None else orbit_elevation(train_cam.T_world_cam, train_ground, elev)
+    bar = tqdm(total=len(ds), desc="reconstruct", unit="photo" if tiles == 1 else "tile", disable=not progress)
+    for start in range(0, len(ds), BATCH):
+        rows = list(range(start, min(start + BATCH, len(ds))))
+        b = ds.batch(rows)  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
+        recs_b, elevs = [by_name[ds.names[i]] for i in rows], []
+        for j, rec in enumerate(recs_b):
+            elev = _for_photo(elevation, Path(rec["photo"]).stem)
+            elevs.append(elev)
+            if not rec.get("own_camera", False):
+                b.K[j] = train_cam.K
+                b.T_world_cam[j] = train_cam.T_world_cam if elev is None else orbit_elevation(train_cam.T_world_cam, train_ground, elev)
         b.ground_z[:] = train_ground
-        warnings = list(rec.get("warnings", []))
-        if own_cam and _for_photo(asked, stem) is not None:
-            warnings.append(f"elevation {_for_photo(asked, stem):g} deg ignored: this photo's calibrated camera is used as it is")
-        psnr = {}
+        psnr = [{} for _ in rows]
 
-        def score(step, o, b=b):
-            psnr[step] = image_metrics(o.composite.image.numpy(), b.rgb.numpy())["PSNR"]
+        def score(step, o, b=b, psnr=psnr):
+            for j in range(len(psnr)):
+                psnr[j][step] = image_metrics(o.composite.image[j : j + 1].numpy(), b.rgb[j : j + 1].numpy())["PSNR"]
 
         o = infer(net, b, cfg, loss_cfg, on_step=score)
-        name = ds.names[i]
-        photo = load_photo(rec["photo"])
-        keep = found_objects(o.composite.instance[0], o.obj_depth.shape[1], min_pixels)
-        title = f"{Path(rec['photo']).name}: {len(keep)} objects found (>= {min_pixels} px), PSNR " + " -> ".join(f"{v:.1f}" for v in psnr.values()) + " dB"
-        fig = decomposition_figure(b.rgb, o, 0, per_view / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
-                                   photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
-        scene = LatentScene.from_output(o, b, 0, fp)
-        scene.save(per_view / f"{name}.json")
-        instance = o.composite.instance[0].numpy().astype(np.uint8)
-        write_image(per_view / f"{name}_instance.png", instance)
-        mesh_path = None
-        if keep:
-            mesh_path = write_mesh(scene_mesh(net, LatentScene.from_output(o, b, 0, fp, slots=keep), resolution),
-                                   per_view / f"{name}.{mesh_format}")
-        finite = all(bool(torch.isfinite(t).all()) for t in (o.composite.image, o.composite.depth, o.latents.bg_color,
-                                                               o.latents.params.position, o.latents.params.z_sh))
-        results.append({"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
-                        "objects": _objects(o, keep, rec.get("world")),
-                        "detections": view_detections(instance, rec["outline"], min_pixels), "outlines": [rec["outline"]],
-                        "figure": str(fig), "scene": str(per_view / f"{name}.json"), "instance": str(per_view / f"{name}_instance.png"), "mesh": None if mesh_path is None else str(mesh_path),
-                        "camera": "the photo's own calibrated camera" if own_cam else
-                        "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
-                        else "model's training camera (assumed)" if elev is None
-                        else f"model's training camera moved to {elev:g} deg elevation (assumed)", "warnings": warnings,
-                        "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec})
+        for j, (i, rec, elev) in enumerate(zip(rows, recs_b, elevs)):
+            results.append(_view_record(net, o, b, j, ds.names[i], rec, elev, psnr[j], per_view, fp, cfg, min_pixels, mesh_format,
+                                        resolution if meshes else None, asked))
+        bar.update(len(rows))
+    bar.close()
     if tiles > 1:
         results = [_merged(photo, [r for r in results if r["photo"] == photo], out) for photo in dict.fromkeys(r["photo"] for r in results)]
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
+
+
+def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pixels, mesh_format, resolution, asked) -> dict:
+    """Write one prepared view's outputs (row ``j`` of the batch ``b`` and its output ``o``): figure, latent scene,
+    instance image and (with a ``resolution``) the mesh of the objects found; return its record."""
+    from prismonet.files import write_image
+    from prismonet.scene import LatentScene
+    from prismonet.scene.export import scene_mesh, write_mesh
+    from prismonet.viz.decomposition import decomposition_figure
+    from realdata.io import load_photo
+
+    stem = Path(rec["photo"]).stem
+    own_cam = rec.get("own_camera", False)
+    warnings = list(rec.get("warnings", []))
+    if own_cam and _for_photo(asked, stem) is not None:
+        warnings.append(f"elevation {_for_photo(asked, stem):g} deg ignored: this photo's calibrated camera is used as it is")
+    photo = load_photo(rec["photo"])
+    keep = found_objects(o.composite.instance[j], o.obj_depth.shape[1], min_pixels)
+    title = f"{Path(rec['photo']).name}: {len(keep)} objects found (>= {min_pixels} px), PSNR " + " -> ".join(f"{v:.1f}" for v in psnr.values()) + " dB"
+    fig = decomposition_figure(b.rgb, o, j, per_view / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
+                               photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
+    LatentScene.from_output(o, b, j, fp).save(per_view / f"{name}.json")
+    instance = o.composite.instance[j].numpy().astype(np.uint8)
+    write_image(per_view / f"{name}_instance.png", instance)
+    mesh_path = None
+    if keep and resolution is not None:
+        mesh_path = write_mesh(scene_mesh(net, LatentScene.from_output(o, b, j, fp, slots=keep), resolution), per_view / f"{name}.{mesh_format}")
+    finite = all(bool(torch.isfinite(t[j]).all()) for t in (o.composite.image, o.composite.depth, o.latents.bg_color,
+                                                           o.latents.params.position, o.latents.params.z_sh))
+    return {"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
+            "objects": _objects(o, j, keep, rec.get("world")),
+            "detections": view_detections(instance, rec["outline"], min_pixels), "outlines": [rec["outline"]],
+            "figure": str(fig), "scene": str(per_view / f"{name}.json"), "instance": str(per_view / f"{name}_instance.png"),
+            "mesh": None if mesh_path is None else str(mesh_path),
+            "camera": "the photo's own calibrated camera" if own_cam else
+            "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
+            else "model's training camera (assumed)" if elev is None
+            else f"model's training camera moved to {elev:g} deg elevation (assumed)", "warnings": warnings,
+            "finite": finite, "psnr": psnr, "inference": cfg.record(), "prepare": rec}
 
 
 def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
@@ -204,14 +223,14 @@ def _for_photo(value: float | dict[str, float] | None, name: str) -> float | Non
     return value.get(name) if isinstance(value, dict) else value
 
 
-def _objects(o, keep: list[int], world: dict | None) -> list[dict]:
+def _objects(o, j: int, keep: list[int], world: dict | None) -> list[dict]:
     """Each found object's slot, scale and position in model units, and with a world map its
     position and size on the calibrated table (metres, the table's frame)."""
     p = o.latents.params
     rows = []
     for k in keep:
-        pos = p.position[0, k].double().numpy()
-        row = {"slot": k, "position": pos.tolist(), "scale": float(p.scale[0, k])}
+        pos = p.position[j, k].double().numpy()
+        row = {"slot": k, "position": pos.tolist(), "scale": float(p.scale[j, k])}
         if world is not None:
             from realdata.world import WorldMapping
 

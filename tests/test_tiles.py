@@ -99,3 +99,18 @@ def test_tiles_are_refused_with_a_calibration(tmp_path):
 
     with pytest.raises(ValueError, match="uncalibrated"):
         prepare_photos([str(tmp_path / "x.png")], tmp_path / "o", calibration=tmp_path / "c.yaml", tiling=TileConfig(2))
+
+
+def test_views_decoded_together_give_what_one_at_a_time_gives(tmp_path, monkeypatch):
+    """``reconstruct_photos`` decodes ``BATCH`` views at once: the same objects, boxes and scores as one by one."""
+    import realdata.reconstruct as rc
+
+    photos = [str(Path(rc.__file__).parent / "samples" / n) for n in ("smarties.png", "stuff.jpg")]
+    together = rc.reconstruct_photos(photos, tmp_path / "a", "tabletop_keep", tiling=TileConfig(2), progress=False, meshes=False)
+    monkeypatch.setattr(rc, "BATCH", 1)
+    alone = rc.reconstruct_photos(photos, tmp_path / "b", "tabletop_keep", tiling=TileConfig(2), progress=False, meshes=False)
+    assert len(together[0]["tiles"]) > 1
+    for x, y in zip(together, alone):
+        assert x["objects_found"] == y["objects_found"] and x["detections"]["scores"] == y["detections"]["scores"]
+        assert np.allclose(x["detections"]["boxes"], y["detections"]["boxes"], atol=1e-6)
+        assert all(t["mesh"] is None for t in x["tiles"])
