@@ -115,7 +115,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         bar.update(len(rows))
     bar.close()
     if tiles > 1:
-        results = [_merged(photo, [r for r in results if r["photo"] == photo], out) for photo in dict.fromkeys(r["photo"] for r in results)]
+        results = [_merged(photo, [r for r in results if r["photo"] == photo], out, net, resolution if meshes else None, mesh_format)
+                   for photo in dict.fromkeys(r["photo"] for r in results)]
     (out / "summary.json").write_text(json.dumps(results, indent=1))
     return results
 
@@ -139,7 +140,9 @@ def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pix
     title = f"{Path(rec['photo']).name}: {len(keep)} objects found (>= {min_pixels} px), PSNR " + " -> ".join(f"{v:.1f}" for v in psnr.values()) + " dB"
     fig = decomposition_figure(b.rgb, o, j, per_view / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
                                photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
-    LatentScene.from_output(o, b, j, fp).save(per_view / f"{name}.json")
+    p = o.latents.params
+    scene_slots = list(range(p.z_sh.shape[1])) if p.active is None else torch.nonzero(p.active[j]).flatten().tolist()
+    LatentScene.from_output(o, b, j, fp, slots=scene_slots).save(per_view / f"{name}.json")
     instance = o.composite.instance[j].numpy().astype(np.uint8)
     write_image(per_view / f"{name}_instance.png", instance)
     mesh_path = None
@@ -147,7 +150,7 @@ def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pix
         mesh_path = write_mesh(scene_mesh(net, LatentScene.from_output(o, b, j, fp, slots=keep), resolution), per_view / f"{name}.{mesh_format}")
     finite = all(bool(torch.isfinite(t[j]).all()) for t in (o.composite.image, o.composite.depth, o.latents.bg_color,
                                                            o.latents.params.position, o.latents.params.z_sh))
-    return {"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep,
+    return {"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep, "scene_slots": scene_slots,
             "objects": _objects(o, j, keep, rec.get("world")),
             "detections": view_detections(instance, rec["outline"], min_pixels), "outlines": [rec["outline"]],
             "figure": str(fig), "scene": str(per_view / f"{name}.json"), "instance": str(per_view / f"{name}_instance.png"),
@@ -177,40 +180,76 @@ def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
     return results
 
 
+RENDER_SIDE = 192
+"""Pixels across the view when an assembled scene is rendered for the tiled photo's figure."""
+
+
+def _render_over_photo(net, scene, view, photo_shape) -> np.ndarray:
+    """``(h, w, 3)`` uint8: the scene rendered from its camera over the square ``view`` of the photo, mapped onto the
+    photo's pixels (outside the view: white)."""
+    import cv2
+
+    with torch.no_grad():
+        comp = scene.render(net, scene.camera.resized(RENDER_SIDE, RENDER_SIDE))[0]
+    img = (comp.image[0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    vx, vy, vs, _ = view
+    f = RENDER_SIDE / vs  # photo pixel x -> render pixel (x + 0.5 - vx) f - 0.5
+    A = np.float32([[f, 0, (0.5 - vx) * f - 0.5], [0, f, (0.5 - vy) * f - 0.5]])
+    h, w = photo_shape
+    return cv2.warpAffine(img, A, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=(255, 255, 255))
+
+
 def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS) -> dict:
     """The found objects of one view (``instance (S, S)``, 0 = background): their boxes in photo pixels (every mask
-    pixel's corners through the view-to-photo map of ``outline``), scores (visible pixels), and whether each mask
-    touches the view's edge (left, top, right, bottom)."""
+    pixel's corners through the view-to-photo map of ``outline``), scores (visible pixels), slots, and whether each
+    mask touches the view's edge (left, top, right, bottom)."""
     from realdata.boxes import mask_box, view_to_photo
 
     H = view_to_photo(outline, instance.shape[0])
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
     found = [(int(k), int(c)) for k, c in zip(ids, counts) if c >= min_pixels]
     masks = [instance == k for k, _ in found]
-    return {"boxes": [list(mask_box(m, H)) for m in masks], "scores": [float(c) for _, c in found],
+    return {"boxes": [list(mask_box(m, H)) for m in masks], "scores": [float(c) for _, c in found], "slots": [k - 1 for k, _ in found],
             "edges": [[bool(m[:, 0].any()), bool(m[0].any()), bool(m[:, -1].any()), bool(m[-1].any())] for m in masks]}
 
 
-def _merged(photo: str, views: list[dict], out: Path) -> dict:
+def _merged(photo: str, views: list[dict], out: Path, net=None, resolution: int | None = None, mesh_format: str = "ply") -> dict:
     """One photo's record from its tiles' records: their detections merged (``realdata.tiles``) and a figure."""
     from realdata.io import load_photo
     from prismonet.viz.tiled_photo import tiled_photo_figure
     from realdata.tiles import merge_detections
 
-    boxes, scores, cut = [], [], []
-    for v in views:
+    boxes, scores, cut, picks = [], [], [], []
+    for t, v in enumerate(views):
         inner = v["prepare"]["inner_edges"]
-        for b, s, e in zip(v["detections"]["boxes"], v["detections"]["scores"], v["detections"]["edges"]):
+        d = v["detections"]
+        for b, s, e, k in zip(d["boxes"], d["scores"], d["edges"], d["slots"]):
             boxes.append(b)
             scores.append(s)
-            cut.append(any(i and t for i, t in zip(inner, e)))
+            cut.append(any(a and b for a, b in zip(inner, e)))
+            picks.append((t, v["scene_slots"].index(k)))
     boxes_a = np.array(boxes, np.float64).reshape(-1, 4)
     kept = merge_detections(boxes_a, np.array(scores), np.array(cut, bool))
     stem = Path(photo).stem
     img = (np.clip(load_photo(photo), 0, 1) * 255).round().astype(np.uint8)
-    fig = tiled_photo_figure(img, [v["prepare"]["outline"] for v in views], boxes_a, np.array(cut, bool), kept, out / f"{stem}.png")
+    from prismonet.scene import LatentScene
+    from realdata.assemble import assemble_scene, view_box
+
+    tile_boxes = [tuple(v["prepare"]["crop_box"]) for v in views]
+    scene = assemble_scene([LatentScene.load(v["scene"]) for v in views], tile_boxes, [picks[k] for k in kept],
+                           view_box(views[0]["prepare"]["region"]))
+    scene_path = scene.save(out / f"{stem}.json")
+    rendered = _render_over_photo(net, scene, view_box(views[0]["prepare"]["region"]), img.shape[:2]) if net is not None else None
+    fig = tiled_photo_figure(img, [v["prepare"]["outline"] for v in views], boxes_a, np.array(cut, bool), kept, out / f"{stem}.png",
+                             rendered=rendered)
+    mesh_path = None
+    if resolution is not None and net is not None and scene.num_objects:
+        from prismonet.scene.export import scene_mesh, write_mesh
+
+        mesh_path = write_mesh(scene_mesh(net, scene, resolution), out / f"{stem}.{mesh_format}")
     steps = list(views[0]["psnr"])
-    return {"photo": photo, "objects_found": len(kept), "tiles": views, "objects": [], "mesh": None, "scene": None,
+    return {"photo": photo, "objects_found": len(kept), "tiles": views, "objects": [], "scene": str(scene_path),
+            "mesh": None if mesh_path is None else str(mesh_path),
             "detections": {"boxes": [boxes[k] for k in kept], "scores": [scores[k] for k in kept]},
             "outlines": [v["prepare"]["outline"] for v in views], "figure": str(fig),
             "camera": views[0]["camera"] + f", per tile ({len(views)} tiles)", "warnings": sorted({w for v in views for w in v["warnings"]}),

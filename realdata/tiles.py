@@ -13,8 +13,8 @@ boxes) are then merged:
   ``MERGE_COVER`` of the smaller box lies inside the other (the same object seen whole in one tile and cut in
   the next).
 
-Each tile's 3-D scene is its own (the training camera is assumed per tile), so tiles give the photo's objects and
-their boxes, not one 3-D scene of the whole table.
+Each tile's 3-D scene is its own (the training camera is assumed per tile); ``realdata.assemble`` moves the merged
+objects into one scene of the whole photo.
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ def cmd_reconstruct(args) -> int:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         if "tiles" in r:
             print(f"  {r['photo']}: {r['objects_found']} objects found in {len(r['tiles'])} tiles (mean PSNR {psnr} dB); {r['figure']}, "
-                  f"each tile's figure, latent scene and mesh in {args.out}/tiles")
+                  f"{r['scene']}" + (f", {r['mesh']}" if r["mesh"] else "") + f"; each tile's own outputs in {args.out}/tiles")
             continue
         print(f"  {r['photo']}: {r['objects_found']} objects found, PSNR {psnr} dB; {r['figure']}" + (f", {r['mesh']}" if r["mesh"] else ""))
         for obj in r["objects"]:

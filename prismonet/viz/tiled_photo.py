@@ -34,10 +34,11 @@ def _boxes(img: np.ndarray, boxes, f: float, color, width: int = 2) -> None:
 
 
 def tiled_photo_figure(photo: np.ndarray, outlines: list, boxes: np.ndarray, cut: np.ndarray, kept: np.ndarray,
-                       path: str | Path, truth: np.ndarray | None = None) -> Path:
+                       path: str | Path, truth: np.ndarray | None = None, rendered: np.ndarray | None = None) -> Path:
     """Write the figure as PNG. ``photo``: ``(h, w, 3)`` uint8 RGB; ``outlines``: each tile's four corners in photo
     pixels; ``boxes (n, 4)``, ``cut (n,)``: every tile's detections and whether each is cut by an inner tile edge;
-    ``kept``: the indices merging kept; ``truth``: optional true boxes, drawn on the last panel."""
+    ``kept``: the indices merging kept; ``truth``: optional true boxes, drawn on the third panel; ``rendered``: optional
+    ``(h, w, 3)`` uint8, the kept objects' assembled scene rendered onto the photo's pixels (a fourth panel)."""
     import cv2
 
     small, f = _fit(photo)
@@ -57,4 +58,6 @@ def tiled_photo_figure(photo: np.ndarray, outlines: list, boxes: np.ndarray, cut
     panels = [labelled_panel(tiles, f"photo, {len(outlines)} tiles", size),
               labelled_panel(every, f"tiles' detections: {int((~cut).sum())} whole, {int(cut.sum())} cut", size),
               labelled_panel(merged, f"{len(kept)} objects after merging" + (f" ({len(truth)} true, green)" if truth is not None else ""), size)]
+    if rendered is not None:
+        panels.append(labelled_panel(_fit(rendered)[0], "the assembled 3-D scene, rendered", size))
     return write_image(Path(path), panel_grid([panels])[..., ::-1])
