@@ -54,19 +54,20 @@ def tile_to_view(position: torch.Tensor, scale: torch.Tensor, camera, ground_z: 
     return new_pos.to(position.dtype), (s * zoom * d / d_tile).to(scale.dtype)
 
 
-def assemble_scene(tile_scenes: list, tiles: list[tuple[int, int, int, int]], picks: list[tuple[int, int]],
+def assemble_scene(tile_scenes: dict, tiles: list[tuple[int, int, int, int]], picks: list[tuple[int, int]],
                    view: tuple[int, int, int, int]):
-    """A ``LatentScene`` of the objects ``picks`` (``(tile index, object index in that tile's scene)``), moved from
-    their tiles into ``view``'s world; seen by the tiles' camera over the view, with their mean background colour."""
+    """A ``LatentScene`` of the objects ``picks`` (at least one; ``(tile index, object index in that tile's scene)``),
+    moved from their tiles into ``view``'s world; ``tile_scenes``: ``{tile index: LatentScene}`` for those tiles. It is
+    seen by the tiles' camera over the view, with the mean of those tiles' background colours."""
     from dataclasses import replace
 
+    if not picks:
+        raise ValueError("assemble_scene: no objects to assemble")
     parts = []
     for t, k in picks:
         sc = tile_scenes[t].select([k])
         pos, scale = tile_to_view(sc.position, sc.scale, sc.camera, sc.ground_z, tiles[t], view)
         parts.append(replace(sc, position=pos, scale=scale))
-    first = tile_scenes[0]
-    cat = lambda name, empty: torch.cat([getattr(p, name) for p in parts]) if parts else empty
-    return replace(first, z_sh=cat("z_sh", first.z_sh[:0]), z_tex=cat("z_tex", first.z_tex[:0]), position=cat("position", first.position[:0]),
-                   cos_sin=cat("cos_sin", first.cos_sin[:0]), scale=cat("scale", first.scale[:0]),
-                   bg_color=torch.stack([s.bg_color for s in tile_scenes]).mean(0))
+    cat = lambda name: torch.cat([getattr(p, name) for p in parts])
+    return replace(parts[0], z_sh=cat("z_sh"), z_tex=cat("z_tex"), position=cat("position"), cos_sin=cat("cos_sin"), scale=cat("scale"),
+                   bg_color=torch.stack([tile_scenes[t].bg_color for t in sorted({t for t, _ in picks})]).mean(0))

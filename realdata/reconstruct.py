@@ -236,19 +236,22 @@ def _merged(photo: str, views: list[dict], out: Path, net=None, resolution: int 
     from realdata.assemble import assemble_scene, view_box
 
     tile_boxes = [tuple(v["prepare"]["crop_box"]) for v in views]
-    scene = assemble_scene([LatentScene.load(v["scene"]) for v in views], tile_boxes, [picks[k] for k in kept],
-                           view_box(views[0]["prepare"]["region"]))
-    scene_path = scene.save(out / f"{stem}.json")
-    rendered = _render_over_photo(net, scene, view_box(views[0]["prepare"]["region"]), img.shape[:2]) if net is not None else None
+    chosen = [picks[k] for k in kept]
+    scene = scene_path = rendered = None
+    if chosen:  # a tile's scene file exists only where it has objects
+        view = view_box(views[0]["prepare"]["region"])
+        scene = assemble_scene({t: LatentScene.load(views[t]["scene"]) for t in sorted({t for t, _ in chosen})}, tile_boxes, chosen, view)
+        scene_path = scene.save(out / f"{stem}.json")
+        rendered = _render_over_photo(net, scene, view, img.shape[:2]) if net is not None else None
     fig = tiled_photo_figure(img, [v["prepare"]["outline"] for v in views], boxes_a, np.array(cut, bool), kept, out / f"{stem}.png",
                              rendered=rendered)
     mesh_path = None
-    if resolution is not None and net is not None and scene.num_objects:
+    if resolution is not None and net is not None and scene is not None:
         from prismonet.scene.export import scene_mesh, write_mesh
 
         mesh_path = write_mesh(scene_mesh(net, scene, resolution), out / f"{stem}.{mesh_format}")
     steps = list(views[0]["psnr"])
-    return {"photo": photo, "objects_found": len(kept), "tiles": views, "objects": [], "scene": str(scene_path),
+    return {"photo": photo, "objects_found": len(kept), "tiles": views, "objects": [], "scene": None if scene_path is None else str(scene_path),
             "mesh": None if mesh_path is None else str(mesh_path),
             "detections": {"boxes": [boxes[k] for k in kept], "scores": [scores[k] for k in kept]},
             "outlines": [v["prepare"]["outline"] for v in views], "figure": str(fig),

@@ -69,3 +69,21 @@ def test_a_tiled_photo_gets_one_scene_and_one_mesh(tmp_path):
     assert scene.num_objects == r["objects_found"] > 0 and Path(r["mesh"]).is_file()
     assert json.loads((tmp_path / "r" / "summary.json").read_text())[0]["scene"] == r["scene"]
     assert np.isfinite(scene.position.numpy()).all() and (scene.scale > 0).all()
+
+
+def test_a_photo_whose_tiles_find_nothing_somewhere_still_assembles(tmp_path):
+    """The coffee close-up: some tiles find no object (their scene files hold none); the photo's scene is made from the
+    tiles that do, or is absent when none does."""
+    from pathlib import Path
+
+    from prismonet.scene import LatentScene
+    from realdata.reconstruct import reconstruct_photos
+    from realdata.tiles import TileConfig
+
+    photo = Path(__file__).resolve().parents[1] / "realdata" / "samples" / "coffee.jpg"
+    r = reconstruct_photos([photo], tmp_path / "r", "tabletop_keep", tiling=TileConfig(2), progress=False, meshes=False)[0]
+    assert any(t["objects_found"] == 0 for t in r["tiles"])
+    if r["objects_found"]:
+        assert LatentScene.load(r["scene"]).num_objects == r["objects_found"]
+    else:
+        assert r["scene"] is None
