@@ -142,7 +142,9 @@ def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pix
                                photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
     p = o.latents.params
     scene_slots = list(range(p.z_sh.shape[1])) if p.active is None else torch.nonzero(p.active[j]).flatten().tolist()
-    LatentScene.from_output(o, b, j, fp, slots=scene_slots).save(per_view / f"{name}.json")
+    scene_path = None  # a scene file holds at least one object (LatentScene.load): none where every slot was dropped
+    if scene_slots:
+        scene_path = LatentScene.from_output(o, b, j, fp, slots=scene_slots).save(per_view / f"{name}.json")
     instance = o.composite.instance[j].numpy().astype(np.uint8)
     write_image(per_view / f"{name}_instance.png", instance)
     mesh_path = None
@@ -153,7 +155,7 @@ def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pix
     return {"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep, "scene_slots": scene_slots,
             "objects": _objects(o, j, keep, rec.get("world")),
             "detections": view_detections(instance, rec["outline"], min_pixels), "outlines": [rec["outline"]],
-            "figure": str(fig), "scene": str(per_view / f"{name}.json"), "instance": str(per_view / f"{name}_instance.png"),
+            "figure": str(fig), "scene": None if scene_path is None else str(scene_path), "instance": str(per_view / f"{name}_instance.png"),
             "mesh": None if mesh_path is None else str(mesh_path),
             "camera": "the photo's own calibrated camera" if own_cam else
             "rectified to the training view (calibrated ground pose)" if rec.get("rectified")
@@ -238,7 +240,7 @@ def _merged(photo: str, views: list[dict], out: Path, net=None, resolution: int 
     tile_boxes = [tuple(v["prepare"]["crop_box"]) for v in views]
     chosen = [picks[k] for k in kept]
     scene = scene_path = rendered = None
-    if chosen:  # a tile's scene file exists only where it has objects
+    if chosen:  # (a tile whose slots were all dropped has no scene file, and no detection)
         view = view_box(views[0]["prepare"]["region"])
         scene = assemble_scene({t: LatentScene.load(views[t]["scene"]) for t in sorted({t for t, _ in chosen})}, tile_boxes, chosen, view)
         scene_path = scene.save(out / f"{stem}.json")

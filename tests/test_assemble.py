@@ -83,6 +83,8 @@ def test_a_photo_whose_tiles_find_nothing_somewhere_still_assembles(tmp_path):
     photo = Path(__file__).resolve().parents[1] / "realdata" / "samples" / "coffee.jpg"
     r = reconstruct_photos([photo], tmp_path / "r", "tabletop_keep", tiling=TileConfig(2), progress=False, meshes=False)[0]
     assert any(t["objects_found"] == 0 for t in r["tiles"])
+    for t in r["tiles"]:  # a tile's scene file, where it has one, loads
+        assert t["scene"] is None or LatentScene.load(t["scene"]).num_objects >= t["objects_found"]
     if r["objects_found"]:
         assert LatentScene.load(r["scene"]).num_objects == r["objects_found"]
     else:
