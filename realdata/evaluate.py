@@ -117,7 +117,8 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     for lab, rec in zip(labels, recs):
         shape = read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2]
         m = photo_measures(lab, rec["detections"], rec["outlines"], shape)
-        m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"])
+        m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"],
+                 reading=f"{len(rec['tiles'])} tiles" if "tiles" in rec else "whole")
         rows.append(m)
     ap, ar = ap_ar(np.concatenate([r["scores"] for r in rows]), np.concatenate([r["hits"] for r in rows]).astype(bool),
                    sum(r["true_objects"] for r in rows))
@@ -131,12 +132,16 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
 
 
 def format_real_table(result: dict) -> str:
-    """A Markdown table: one row per photo and the overall row."""
-    lines = ["| photo | true (in view) | found | box AP0.5 | box AR0.5 | foreground IoU | PSNR |", "|---|---|---|---|---|---|---|"]
+    """A Markdown table: one row per photo and the overall row; with a column for how each photo was read (whole, or
+    in how many tiles) when any was read in tiles."""
+    tiled = any(r.get("reading", "whole") != "whole" for r in result["photos"])
+    read = (lambda r: f" {r.get('reading', 'whole')} |") if tiled else (lambda r: "")
+    lines = ["| photo |" + (" read |" if tiled else "") + " true (in view) | found | box AP0.5 | box AR0.5 | foreground IoU | PSNR |",
+             "|---|" + ("---|" if tiled else "") + "---|---|---|---|---|---|"]
     for r in result["photos"]:
-        lines.append(f"| {Path(r['photo']).name} | {r['true_objects']} ({r['true_in_view']}) | {r['objects_found']} | {r['box_AP0.5']:.3f} | "
+        lines.append(f"| {Path(r['photo']).name} |{read(r)} {r['true_objects']} ({r['true_in_view']}) | {r['objects_found']} | {r['box_AP0.5']:.3f} | "
                      f"{r['box_AR0.5']:.3f} | {r['foreground_IoU']:.3f} | {list(r['psnr'].values())[-1]:.1f} |")
     o = result["overall"]
-    lines.append(f"| **all** | {o['true_objects']} ({o['true_in_view']}) | {o['objects_found']} | {o['box_AP0.5']:.3f} | "
+    lines.append(f"| **all** |" + (" |" if tiled else "") + f" {o['true_objects']} ({o['true_in_view']}) | {o['objects_found']} | {o['box_AP0.5']:.3f} | "
                  f"{o['box_AR0.5']:.3f} | {o['foreground_IoU']:.3f} | {o['PSNR']:.1f} |")
     return "\n".join(lines)

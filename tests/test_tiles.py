@@ -83,6 +83,9 @@ def test_real_evaluate_in_tiles_finds_a_scene_twice_side_by_side(tmp_path):
     assert [t["prepare"]["crop_box"] for t in summary["tiles"]] == [[0, 0, 64, 64], [64, 0, 64, 64]]
     assert all(Path(t["figure"]).is_file() and Path(t["scene"]).is_file() for t in summary["tiles"])
     assert Path(p["figure"]).is_file() and p["objects_found"] == len(summary["detections"]["boxes"])
+    from realdata.evaluate import format_real_table
+
+    assert "| twice.png | 2 tiles | " in format_real_table(r) and "| read |" in format_real_table(r)
     assert any("read as 1 tile across, not 2" in w for w in summary["warnings"])  # 64 px high: one tile across
     # each tile is the scene itself, as the shipped model was trained on it: most objects are found in both
     assert p["box_AR0.5"] >= 0.5
