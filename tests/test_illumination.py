@@ -59,3 +59,17 @@ def test_prepare_with_flat_records_the_field(tmp_path, normalize):
     lf = rec["light_field"]
     assert 1 / MAX_FIELD <= lf["field_min"] < 1.0 < lf["field_max"] <= MAX_FIELD  # the coins' table is uneven
     assert json.loads((tmp_path / "p" / "annotations" / "coins.json").read_text())["prepare"]["light_field"] == lf
+
+
+@pytest.mark.parametrize("kind", ["black", "white", "constant", "noise", "two colours", "tiny"])
+def test_degenerate_photos_give_a_finite_bounded_field(kind):
+    rng = np.random.default_rng(0)
+    img = {"black": np.zeros((50, 70, 3)), "white": np.ones((50, 70, 3)), "constant": np.full((50, 70, 3), 0.3),
+           "noise": rng.uniform(0, 1, (50, 70, 3)), "two colours": np.repeat(np.array([[[0.9, 0.1, 0.1]], [[0.1, 0.1, 0.9]]]), 25, 0).repeat(70, 1),
+           "tiny": rng.uniform(0.2, 0.4, (2, 2, 3))}[kind]
+    f = illumination_field(img)
+    assert f.shape == img.shape[:2] and np.isfinite(f).all() and (f >= 1 / MAX_FIELD).all() and (f <= MAX_FIELD).all()
+    if kind in ("black", "white", "constant"):
+        assert np.allclose(f, 1.0)  # nothing to correct
+    flat, _ = flatten_light(img.astype(np.float32))
+    assert flat.dtype == np.float32 and np.isfinite(flat).all() and flat.min() >= 0 and flat.max() <= 1
