@@ -50,7 +50,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     if normalize == "manual" and gain is None:
         raise ValueError("normalize=manual needs a gain (r,g,b)")
     tiles = 1 if tiling is None else tiling.tiles
-    if tiles > 1 and calibration is not None:
+    if (tiles > 1 or (tiling is not None and tiling.target_px)) and calibration is not None:
         raise ValueError("--tiles reads uncalibrated photos (each tile is seen by the training camera); a calibrated photo "
                          "is rectified to the model's view as a whole")
     stems = [Path(p).stem for p in photos]
@@ -151,8 +151,8 @@ def _tiled(p, img, box, size, tiling, normalize, gain, target) -> list:
     mapping = _color_mapping(img[y0 : y0 + h, x0 : x0 + w], normalize, gain, target)
     tiles, overlap, n = tiling.tiles, tiling.overlap, tiling.tiles
     while n > 1 and tile_boxes(region, n, overlap)[0][2] < size:
-        n -= 1  # no tile smaller than the model's input (upscaling would invent the detail the model reads)
-    note = [] if n == tiles else [f"read as {n} tile{'s' if n > 1 else ''} across, not {tiles}: the region ({w}x{h} px) "
+        n = max(1, n - 1)  # no tile smaller than the model's input (upscaling would invent the detail the model reads)
+    note = [] if n == tiles else [f"read as {n:g} tile{'s' if n > 1 else ''} across, not {tiles:g}: the region ({w}x{h} px) "
                                   f"holds no more tiles of at least {size} px"]
     parts = []
     for t, tb in enumerate(tile_boxes(region, n, overlap)):

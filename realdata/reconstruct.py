@@ -53,7 +53,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     (``pose_frame = "camera"``); the others know one camera. ``elevation_hints`` (``{photo stem: degrees}``,
     e.g. the labels' ``elevation_deg``): used as ``elevation`` when that is not given and the model takes
     the camera as an input, ignored otherwise."""
-    if tiling is not None and tiling.tiles > 1 and tiling.below_px is not None:
+    if tiling is not None and (tiling.target_px is not None or (tiling.tiles > 1 and tiling.below_px is not None)):
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
                                   inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
@@ -79,6 +79,10 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     if elevation is not None and not own:
         raise ValueError("an elevation needs a model that takes the camera as an input (pose_frame camera, e.g. a "
                          "tabletop model); this one was trained from one camera")
+    if (prepared / "dataset.json").is_file():  # an earlier run's prepared views would be read with these
+        import shutil
+
+        shutil.rmtree(prepared)
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
                           view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own,
                           tiling=tiling)
@@ -165,15 +169,22 @@ def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pix
 
 
 def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
-    """``TileConfig.below_px``: read every photo whole (into ``out/whole``), then in tiles those whose objects are small
-    (or none found); each record says which reading it is (``reading``) and the whole reading's median object size."""
+    """``TileConfig.below_px`` or ``target_px``: read every photo whole first (into ``out/whole``), then in tiles those
+    whose objects are small (or none found), as many as ``below_px``'s fixed count or ``target_px``'s zoom ask; each
+    record says which reading it is (``reading``) and the whole reading's median object size."""
     from dataclasses import replace
 
     out = Path(out)
     whole = reconstruct_photos(photos, out / "whole", tiling=None, **kw)
     size = {r["photo"]: float(np.median(r["detections"]["scores"])) if r["detections"]["scores"] else 0.0 for r in whole}
-    small = [str(p) for p in photos if size[str(p)] < tiling.below_px]
-    tiled = {r["photo"]: r for r in reconstruct_photos(small, out, tiling=replace(tiling, below_px=None), **kw)} if small else {}
+    if tiling.target_px is not None:
+        count = {p: tiling.tiles_for(m) for p, m in size.items()}
+    else:
+        count = {p: tiling.tiles if m < tiling.below_px else 1.0 for p, m in size.items()}
+    tiled = {}
+    for n in sorted({c for c in count.values() if c > 1}):
+        group = [str(p) for p in photos if count[str(p)] == n]
+        tiled.update({r["photo"]: r for r in reconstruct_photos(group, out, tiling=replace(tiling, tiles=n, below_px=None, target_px=None), **kw)})
     results = []
     for r in whole:
         rec = tiled.get(r["photo"], r)

@@ -25,6 +25,8 @@ import numpy as np
 
 from dataclasses import dataclass
 
+MIN_ZOOM = 1.15
+MAX_ZOOM = 3.0
 MERGE_IOU = 0.2
 MERGE_COVER = 0.5
 
@@ -33,12 +35,16 @@ MERGE_COVER = 0.5
 class TileConfig:
     """How to read a photo in tiles."""
 
-    tiles: int = 2
-    """Tiles along the region's shorter side (1: the whole region at once)."""
+    tiles: float = 2
+    """Tiles along the region's shorter side (1: the whole region at once; a fraction sets the tiles' side)."""
     overlap: float = 0.25
     """The part of a tile's side that neighbouring tiles share."""
     color: str = "region"
     """Where the colour mapping is read: ``"region"`` (once, off the whole table region) or ``"tile"`` (off each tile)."""
+    target_px: float | None = None
+    """Size the tiles per photo instead: read it whole first, then zoom by ``sqrt(target_px / m)`` (``m`` the median
+    visible pixels of its objects; at most ``MAX_ZOOM``), or keep the whole reading where that zoom is under
+    ``MIN_ZOOM``. ``tiles`` is then ignored."""
     below_px: float | None = None
     """Tile only the photos whose whole reading finds objects of a median size under this many visible pixels (of the
     model's view), or that find none; the others keep their whole reading (``None``: tile every photo)."""
@@ -48,17 +54,26 @@ class TileConfig:
             raise ValueError(f"tiles: expected at least 1, got {self.tiles}")
         if not 0.0 <= self.overlap < 1.0:
             raise ValueError(f"tile overlap: expected a fraction in [0, 1), got {self.overlap}")
+        if self.target_px is not None and not self.target_px > 0:
+            raise ValueError(f"tile size target: expected a positive number of pixels, got {self.target_px}")
         if self.below_px is not None and not self.below_px > 0:
             raise ValueError(f"tile size rule: expected a positive number of pixels, got {self.below_px}")
         if self.color not in ("region", "tile"):
             raise ValueError(f"tile colour mapping: expected region or tile, got {self.color!r}")
 
     def record(self) -> dict:
-        return {"tiles": self.tiles, "overlap": self.overlap, "color": self.color, "below_px": self.below_px}
+        return {"tiles": self.tiles, "overlap": self.overlap, "color": self.color, "below_px": self.below_px, "target_px": self.target_px}
+
+    def tiles_for(self, median_px: float) -> float:
+        """With ``target_px``: the tiles along the shorter side that zoom objects of ``median_px`` to the target
+        (1: read whole)."""
+        z = MAX_ZOOM if median_px <= 0 else min(MAX_ZOOM, math.sqrt(self.target_px / median_px))
+        return 1.0 if z < MIN_ZOOM else 1 + (z - 1) / (1 - self.overlap)
 
 
-def tile_boxes(region: tuple[int, int, int, int], tiles: int, overlap: float) -> list[tuple[int, int, int, int]]:
-    """Square tiles ``(x0, y0, side, side)`` covering ``region = (x0, y0, w, h)``: ``tiles`` along its shorter side,
+def tile_boxes(region: tuple[int, int, int, int], tiles: float, overlap: float) -> list[tuple[int, int, int, int]]:
+    """Square tiles ``(x0, y0, side, side)`` covering ``region = (x0, y0, w, h)``: ``tiles`` along its shorter side
+    (a fraction gives the side ``short / (1 + (tiles - 1) (1 - overlap))`` all the same),
     neighbours sharing ``overlap`` of a side, and as many along the longer side as cover it at the same or a
     smaller stride; the tiles of a row (column) are spread evenly from one end of the region to the other."""
     if tiles < 1:
@@ -67,7 +82,7 @@ def tile_boxes(region: tuple[int, int, int, int], tiles: int, overlap: float) ->
         raise ValueError(f"tile overlap: expected a fraction in [0, 1), got {overlap}")
     x0, y0, w, h = (int(v) for v in region)
     short = min(w, h)
-    side = short if tiles == 1 else int(math.ceil(short / (1 + (tiles - 1) * (1 - overlap))))
+    side = short if tiles == 1 else int(math.ceil(short / (1 + (tiles - 1) * (1 - overlap)) - 1e-9))
     side = min(side, short)
 
     def starts(length: int) -> list[int]:

@@ -117,3 +117,27 @@ def test_views_decoded_together_give_what_one_at_a_time_gives(tmp_path, monkeypa
         assert x["objects_found"] == y["objects_found"] and x["detections"]["scores"] == y["detections"]["scores"]
         assert np.allclose(x["detections"]["boxes"], y["detections"]["boxes"], atol=1e-6)
         assert all(t["mesh"] is None for t in x["tiles"])
+
+
+def test_a_second_run_into_the_same_folder_reads_only_its_own_photos(tmp_path):
+    """``reconstruct_photos`` prepares into ``OUT/prepared``: an earlier run's prepared views there are cleared first."""
+    from realdata.reconstruct import reconstruct_photos
+
+    samples = Path(__file__).resolve().parents[1] / "realdata" / "samples"
+    reconstruct_photos([samples / "smarties.png"], tmp_path, "tabletop_keep", tiling=TileConfig(2), progress=False, meshes=False)
+    r = reconstruct_photos([samples / "stuff.jpg"], tmp_path, "tabletop_keep", progress=False, meshes=False)
+    assert [Path(x["photo"]).name for x in r] == ["stuff.jpg"]
+    assert sorted(p.name for p in (tmp_path / "prepared" / "rgb").iterdir()) == ["stuff.png"]
+
+
+def test_tiles_sized_to_the_objects_by_hand():
+    from realdata.tiles import MAX_ZOOM
+
+    cfg = TileConfig(overlap=0.25, target_px=400.0)
+    assert cfg.tiles_for(100.0) == pytest.approx(1 + (2.0 - 1) / 0.75)  # zoom sqrt(400 / 100) = 2
+    assert cfg.tiles_for(350.0) == 1.0  # zoom 1.07: read whole
+    assert cfg.tiles_for(0.0) == pytest.approx(1 + (MAX_ZOOM - 1) / 0.75)  # nothing found: the most zoom
+    # a fractional count sets the side to the region's short side over the zoom
+    assert tile_boxes((0, 0, 300, 200), cfg.tiles_for(100.0), 0.25)[0][2] == 100
+    with pytest.raises(ValueError, match="size target"):
+        TileConfig(target_px=0.0)

@@ -24,7 +24,9 @@ def _tiling(args):
     """``--tiles``, ``--tile-overlap`` and ``--tile-color`` as a ``TileConfig`` (``None``: the whole region at once)."""
     from realdata.tiles import TileConfig
 
-    return None if args.tiles == 1 else TileConfig(args.tiles, args.tile_overlap, args.tile_color, args.tile_below)
+    if args.tiles == 1 and args.tile_size is None:
+        return None
+    return TileConfig(args.tiles, args.tile_overlap, args.tile_color, args.tile_size, args.tile_below)
 
 
 def _warn(recs: list[dict]) -> None:
@@ -164,6 +166,9 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
                    help="the part of a tile's side that neighbouring tiles share (default 0.25)")
     p.add_argument("--tile-color", choices=["region", "tile"], default="region",
                    help="read the colour mapping off the whole table region (default) or off each tile")
+    p.add_argument("--tile-size", type=arg_float(0.0, 1e6, positive=True), metavar="PX",
+                   help="size the tiles per photo: read it whole first, then zoom so that its objects' median size becomes PX "
+                        "visible pixels of the model's view (instead of --tiles)")
     p.add_argument("--tile-below", type=arg_float(0.0, 1e6, positive=True), metavar="PX",
                    help="tile only the photos whose whole reading finds objects of a median size under PX visible pixels of the "
                         "model's view (or none); the rest keep the whole reading (default: tile every photo)")
