@@ -141,7 +141,8 @@ def _tiled(p, img, box, size, tiling, normalize, gain, target) -> list:
     if box is not None:
         region = tuple(int(v) for v in box)
     else:  # the table's bounding box, grown to hold the square a whole-photo reading would crop
-        (tx, ty, tw, th), (sx, sy, side, _) = table_region(img), auto_table_box(img, min_side=size)
+        tx, ty, tw, th = table_region(img)
+        sx, sy, side, _ = auto_table_box(img, min_side=size, region=(tx, ty, tw, th))
         rx, ry = min(tx, sx), min(ty, sy)
         region = (rx, ry, max(tx + tw, sx + side) - rx, max(ty + th, sy + side) - ry)
     x0, y0, w, h = region

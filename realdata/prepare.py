@@ -65,11 +65,11 @@ def table_region(image: np.ndarray) -> tuple[int, int, int, int]:
     return x, y, w, h
 
 
-def auto_table_box(image: np.ndarray, min_side: int = 0) -> tuple[int, int, int, int]:
-    """A square ``(x0, y0, side, side)`` around the table (``table_region``), grown to a square and kept in the photo;
-    when that is smaller than ``min_side`` (the table found is a fragment: shadows, uneven light), the largest
-    centred square of the photo."""
-    x, y, w, h = table_region(image)
+def auto_table_box(image: np.ndarray, min_side: int = 0, region: tuple[int, int, int, int] | None = None) -> tuple[int, int, int, int]:
+    """A square ``(x0, y0, side, side)`` around the table (``table_region``, or ``region`` when already found), grown to
+    a square and kept in the photo; when that is smaller than ``min_side`` (the table found is a fragment: shadows,
+    uneven light), the largest centred square of the photo."""
+    x, y, w, h = table_region(image) if region is None else region
     H, W = image.shape[:2]
     side = min(max(w, h), H, W)
     if side < min_side:

@@ -158,7 +158,8 @@ def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pix
                                                            o.latents.params.position, o.latents.params.z_sh))
     return {"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep, "scene_slots": scene_slots,
             "objects": _objects(o, j, keep, rec.get("world")),
-            "detections": view_detections(instance, rec["outline"], min_pixels), "outlines": [rec["outline"]],
+            "detections": view_detections(instance, rec["outline"], min_pixels, tuple(rec.get("inner_edges", (False,) * 4))),
+            "outlines": [rec["outline"]],
             "figure": str(fig), "scene": None if scene_path is None else str(scene_path), "instance": str(per_view / f"{name}_instance.png"),
             "mesh": None if mesh_path is None else str(mesh_path),
             "camera": "the photo's own calibrated camera" if own_cam else
@@ -212,42 +213,41 @@ def _render_over_photo(net, scene, view, photo_shape) -> np.ndarray:
     return cv2.warpAffine(img, A, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=(255, 255, 255))
 
 
-def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS) -> dict:
+def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS, inner=(False, False, False, False)) -> dict:
     """The found objects of one view (``instance (S, S)``, 0 = background): their boxes in photo pixels (every mask
     pixel's corners through the view-to-photo map of ``outline``), scores (visible pixels), slots, and whether each
-    mask touches the view's edge (left, top, right, bottom)."""
+    is cut: its mask touches one of the view's ``inner`` edges (left, top, right, bottom; a tile's, ``realdata.tiles``)."""
     from realdata.boxes import mask_box, view_to_photo
+    from realdata.tiles import mask_cut
 
     H = view_to_photo(outline, instance.shape[0])
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
     found = [(int(k), int(c)) for k, c in zip(ids, counts) if c >= min_pixels]
     masks = [instance == k for k, _ in found]
     return {"boxes": [list(mask_box(m, H)) for m in masks], "scores": [float(c) for _, c in found], "slots": [k - 1 for k, _ in found],
-            "edges": [[bool(m[:, 0].any()), bool(m[0].any()), bool(m[:, -1].any()), bool(m[-1].any())] for m in masks]}
+            "cut": [mask_cut(m, inner) for m in masks]}
 
 
 def _merged(photo: str, views: list[dict], out: Path, net=None, resolution: int | None = None, mesh_format: str = "ply") -> dict:
-    """One photo's record from its tiles' records: their detections merged (``realdata.tiles``) and a figure."""
-    from realdata.io import load_photo
+    """One photo's record from its tiles' records: their detections merged (``realdata.tiles``), assembled into one
+    scene (``realdata.assemble``), and a figure."""
+    from prismonet.scene import LatentScene
     from prismonet.viz.tiled_photo import tiled_photo_figure
+    from realdata.assemble import assemble_scene, view_box
+    from realdata.io import load_photo
     from realdata.tiles import merge_detections
 
     boxes, scores, cut, picks = [], [], [], []
     for t, v in enumerate(views):
-        inner = v["prepare"]["inner_edges"]
         d = v["detections"]
-        for b, s, e, k in zip(d["boxes"], d["scores"], d["edges"], d["slots"]):
-            boxes.append(b)
-            scores.append(s)
-            cut.append(any(a and b for a, b in zip(inner, e)))
-            picks.append((t, v["scene_slots"].index(k)))
+        boxes += d["boxes"]
+        scores += d["scores"]
+        cut += d["cut"]
+        picks += [(t, v["scene_slots"].index(k)) for k in d["slots"]]
     boxes_a = np.array(boxes, np.float64).reshape(-1, 4)
     kept = merge_detections(boxes_a, np.array(scores), np.array(cut, bool))
     stem = Path(photo).stem
     img = (np.clip(load_photo(photo), 0, 1) * 255).round().astype(np.uint8)
-    from prismonet.scene import LatentScene
-    from realdata.assemble import assemble_scene, view_box
-
     tile_boxes = [tuple(v["prepare"]["crop_box"]) for v in views]
     chosen = [picks[k] for k in kept]
     scene = scene_path = rendered = None

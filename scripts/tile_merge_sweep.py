@@ -38,11 +38,10 @@ def main() -> None:
             for lab in labels:
                 rec = summary[lab.photo.resolve()]
                 boxes, sc, cut = [], [], []
-                for v in rec["tiles"]:
-                    for b, s, e in zip(v["detections"]["boxes"], v["detections"]["scores"], v["detections"]["edges"]):
-                        boxes.append(b)
-                        sc.append(s)
-                        cut.append(any(i and t for i, t in zip(v["prepare"]["inner_edges"], e)))
+                for v in rec.get("tiles", [rec]):  # a photo read whole: its own detections, none cut
+                    boxes += v["detections"]["boxes"]
+                    sc += v["detections"]["scores"]
+                    cut += v["detections"]["cut"]
                 kept = merge_detections(np.array(boxes).reshape(-1, 4), np.array(sc), np.array(cut, bool), iou, cover)
                 det = {"boxes": [boxes[k] for k in kept], "scores": [sc[k] for k in kept]}
                 m = photo_measures(lab, det, rec["outlines"], shapes[lab.photo])
