@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from realdata.boxes import box_iou
+from realdata.color import HIGHLIGHT_PERCENTILE
 
 IOU_THRESHOLD = 0.5
 
@@ -97,7 +98,7 @@ def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[i
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
-                    elevation=None, label_elevations: bool = False, tiling=None) -> dict:
+                    elevation=None, label_elevations: bool = False, tiling=None, highlights=HIGHLIGHT_PERCENTILE) -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
     ``elevation`` (degrees, see ``reconstruct_photos``); or with ``label_elevations`` each label's
@@ -110,7 +111,8 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     hints = {lab.photo.stem: lab.elevation_deg for lab in labels if lab.elevation_deg is not None} if label_elevations else None
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
-                              elevation=elevation, elevation_hints=hints or None, tiling=tiling, meshes=False)
+                              elevation=elevation, elevation_hints=hints or None, tiling=tiling, meshes=False,
+                              highlights=highlights)
     import cv2
 
     rows = []

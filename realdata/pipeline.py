@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from prismonet.files import write_image
-from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, table_mapping
+from realdata.color import (HIGHLIGHT_PERCENTILE, MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited,
+                            spare_highlights, table_mapping)
 from realdata.illumination import flatten_light
 from realdata.io import PhotoError, load_photo
 from realdata.prepare import auto_table_box, crop, resize, table_region, undistort
@@ -22,7 +23,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
                    box: tuple[int, int, int, int] | None = None, normalize: str = "auto",
                    gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET,
                    view=None, metres_per_unit: float | None = None, own_camera: bool = False,
-                   tiling=None) -> list[dict]:
+                   tiling=None, highlights: float | None = HIGHLIGHT_PERCENTILE) -> list[dict]:
     """Prepare photos into ``out`` (folder format, no depth). Returns one record per prepared image: per photo,
     or with ``tiles`` > 1 per tile.
 
@@ -32,8 +33,12 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             plane (``realdata.rectify``) with the world map of ``realdata.world`` (recorded per photo),
             and takes ``view``'s camera; without one, it is cropped and resized.
         box: crop ``(x0, y0, w, h)``; default: automatic, around the table region (not with a ground pose).
-        normalize: ``"auto"`` (table colour -> ``target``), ``"flat"`` (the table's uneven light divided out first,
-            ``realdata.illumination``, then as ``"auto"``), ``"none"``, or ``"manual"`` with ``gain``.
+        normalize: ``"auto"`` (table colour -> ``target``; where the gain would clip the photo's bright end, the
+            brightness above the table's is compressed instead, ``realdata.color.spare_highlights``), ``"flat"`` (the
+            table's uneven light divided out first, ``realdata.illumination``, then as ``"auto"``), ``"none"``, or
+            ``"manual"`` with ``gain`` (a plain gain).
+        highlights: with ``"auto"`` or ``"flat"``, the percentile of the photo's brightness that the tone curve
+            lands on 1 (``realdata.color.spare_highlights``); None: the plain gain, which clips.
         view: ``(Camera, ground_z)`` to rectify to, in model units (default: the CLEVR camera at ``size``).
         metres_per_unit: the world scale; default: derived from the camera distances (``WorldMapping.derive``).
         own_camera: with a ground pose, keep the photo's own camera instead of rectifying (for camera-frame
@@ -79,7 +84,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             img, field = flatten_light(img)
             flat = {"field_min": float(field.min()), "field_max": float(field.max())}
         if tiles > 1:
-            parts = _tiled(p, img, box, size, tiling, normalize, gain, target)
+            parts = _tiled(p, img, box, size, tiling, normalize, gain, target, highlights)
         else:
             if T is not None and own_camera:
                 view_img, cam, placed = _own_camera(p, img, cal, T, view, size, metres_per_unit)
@@ -87,7 +92,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
                 view_img, cam, placed = _rectified(p, img, cal, T, view, size, metres_per_unit)
             else:
                 view_img, cam, placed = _cropped(p, img, cal, box, size)
-            parts = [(Path(p).stem, view_img, cam, placed, _color_mapping(view_img, normalize, gain, target))]
+            parts = [(Path(p).stem, view_img, cam, placed, _color_mapping(view_img, normalize, gain, target, highlights))]
         for name, view_img, cam, placed, (mapping, note) in parts:
             if note:
                 placed["warnings"] = [*placed.get("warnings", []), note]
@@ -133,7 +138,7 @@ def _cropped(p, img, cal, box, size):
     return img, cam, {"crop_box": [x0, y0, w, h], "outline": outline}
 
 
-def _tiled(p, img, box, size, tiling, normalize, gain, target) -> list:
+def _tiled(p, img, box, size, tiling, normalize, gain, target, highlights) -> list:
     """The tiles of an uncalibrated photo: ``[(name, image, camera, record fields, (mapping, note))]``, the colour
     mapping read once off the whole region (``tiling.color`` "region") or off each tile ("tile")."""
     from realdata.tiles import inner_edges, tile_boxes
@@ -149,7 +154,7 @@ def _tiled(p, img, box, size, tiling, normalize, gain, target) -> list:
     H, W = img.shape[:2]
     if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
         raise PhotoError(f"{p}: crop box {region} does not fit in the {W}x{H} photo")
-    mapping = _color_mapping(img[y0 : y0 + h, x0 : x0 + w], normalize, gain, target)
+    mapping = _color_mapping(img[y0 : y0 + h, x0 : x0 + w], normalize, gain, target, highlights)
     tiles, overlap, n = tiling.tiles, tiling.overlap, tiling.tiles
     while n > 1 and tile_boxes(region, n, overlap)[0][2] < size:
         n = max(1, n - 1)  # no tile smaller than the model's input (upscaling would invent the detail the model reads)
@@ -159,7 +164,7 @@ def _tiled(p, img, box, size, tiling, normalize, gain, target) -> list:
     for t, tb in enumerate(tile_boxes(region, n, overlap)):
         view_img, cam, placed = _cropped(p, img, None, tb, size)
         placed.update(tile=t, tiles=n, warnings=note, tile_overlap=overlap, region=list(region), inner_edges=list(inner_edges(tb, region)))
-        own = _color_mapping(view_img, normalize, gain, target) if tiling.color == "tile" else mapping
+        own = _color_mapping(view_img, normalize, gain, target, highlights) if tiling.color == "tile" else mapping
         parts.append((f"{Path(p).stem}_t{t:02d}", view_img, cam, placed, own))
     return parts
 
@@ -223,12 +228,14 @@ def _own_camera(p, img, cal, T, view, size, metres_per_unit):
                       "warnings": camera_warnings(world)}
 
 
-def _color_mapping(img, normalize, gain, target) -> tuple[ColorMapping, str | None]:
+def _color_mapping(img, normalize, gain, target, highlights=HIGHLIGHT_PERCENTILE) -> tuple[ColorMapping, str | None]:
     """The mapping, and a warning when the automatic one could not reach the target within its limits."""
     if normalize in ("auto", "flat"):
         table, goal = estimate_table_color(img), np.asarray(target) / 255.0
         m = table_mapping(table, goal)
-        if mapping_limited(table, goal, m):
+        limited = mapping_limited(table, goal, m)
+        m = spare_highlights(m, table, img, highlights)
+        if limited:
             return m, (f"the table colour read off the photo, RGB ({', '.join(f'{255 * v:.0f}' for v in table)}), is too far from "
                        f"the training ground's to map onto it (gain limited to {MAX_GAIN:g}x, tint to {MAX_TINT:g}x); "
                        "check --box, or pass --normalize manual --gain r,g,b")

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from realdata.color import HIGHLIGHT_PERCENTILE
+
 MIN_PIXELS = 25
 """Visible pixels for a slot to count as a found object (the paper's 25-pixel rule)."""
 BATCH = 16
@@ -36,7 +38,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
-                       elevation_hints: dict[str, float] | None = None, tiling=None, meshes: bool = True) -> list[dict]:
+                       elevation_hints: dict[str, float] | None = None, tiling=None, meshes: bool = True,
+                       highlights: float | None = HIGHLIGHT_PERCENTILE) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
     ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
 
@@ -57,7 +60,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
                                   inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
-                                  elevation_hints=elevation_hints, meshes=meshes)
+                                  elevation_hints=elevation_hints, meshes=meshes, highlights=highlights)
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
@@ -85,7 +88,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         shutil.rmtree(prepared)
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
                           view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own,
-                          tiling=tiling)
+                          tiling=tiling, highlights=highlights)
     tiles = 1 if tiling is None else tiling.tiles
     ds = SceneDataset(prepared)
     by_name = {r["name"]: r for r in recs}

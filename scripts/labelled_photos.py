@@ -7,7 +7,10 @@ scenes stand in for them. Each becomes a PNG and a label with one box per object
 and the camera's true elevation above the table (``elevation_deg``). ``--uneven S`` darkens and brightens each photo
 by a smooth field, as uneven light and lens vignetting do in real photos: a linear gradient of ±S in a random
 direction times a radial fall-off to 1 - S/2 in the corners (seeded per photo). ``--exposure LO,HI`` makes each photo
-darker or brighter by one factor, log-uniform in [LO, HI] (clipped), as a camera's exposure does.
+darker or brighter by one factor, log-uniform in [LO, HI] (clipped), as a camera's exposure does. ``--ground-gray
+LO,HI`` repaints the table of each photo (every pixel no object covers, shadows kept) to a grey level uniform in
+[LO, HI] of full scale, keeping its tint, while the objects keep their own: a dark table under bright objects (coins
+on black velvet) asks the colour normalisation for a gain that an even exposure change never does.
 
     python3 -m prismonet data clevr --randomize --randomize-range focal_scale=0.8,1.8 \
         --randomize-range camera_elevation_deg=18,85 --objects 20 --min-objects 8 --area 4 --size 192 --shadows \
@@ -63,6 +66,8 @@ def main() -> None:
     ap.add_argument("--uneven", type=float, default=0.0, help="strength of the uneven light field (default 0: none)")
     ap.add_argument("--exposure", default=None, metavar="LO,HI",
                     help="multiply each photo by an exposure drawn log-uniformly in [LO, HI], then clip (default: none)")
+    ap.add_argument("--ground-gray", default=None, metavar="LO,HI",
+                    help="repaint the table to a grey level uniform in [LO, HI] (0-1), keeping its tint and shadows")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     ds = SceneDataset(args.data, args.split)
@@ -74,6 +79,10 @@ def main() -> None:
         b = ds.batch([i])
         rgb = b.rgb[0].permute(1, 2, 0).numpy()
         rng = np.random.default_rng([args.seed, i])
+        if args.ground_gray:
+            lo, hi = (float(v) for v in args.ground_gray.split(","))
+            table = b.instance[0].numpy() == 0
+            rgb[table] *= float(rng.uniform(lo, hi)) / max(float(b.ground_color[0].mean()), 1e-3)
         if args.uneven:
             rgb = rgb * uneven_light(rgb.shape[:2], args.uneven, rng)
         if args.exposure:

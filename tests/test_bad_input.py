@@ -213,6 +213,8 @@ CASES = [
     ("tiles zero", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--tiles", "0"], "--tiles"),
     ("tile overlap too large", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--tiles", "2", "--tile-overlap", "0.95"], "--tile-overlap"),
     ("tile size zero", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--tile-size", "0"], "--tile-size"),
+    ("highlights zero", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--highlights", "0"], "--highlights"),
+    ("highlights word", ["real", "evaluate", "{tmp}/nolabels", "--out", "{tmp}/e", "--highlights", "max"], "--highlights"),
     ("tile rule zero", ["real", "evaluate", "{tmp}/nolabels", "--out", "{tmp}/e", "--tiles", "2", "--tile-below", "0"], "--tile-below"),
     ("tiles with a calibration", ["real", "reconstruct", str(PHOTO), "--out", "{tmp}/r", "--tiles", "2", "--camera", "{ground_ok}"], "uncalibrated"),
     ("camera below the table", ["real", "prepare", str(PHOTO), "--out", "{tmp}/p", "--camera", "{ground_below}"], "above the table"),

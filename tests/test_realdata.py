@@ -10,7 +10,7 @@ import torch
 
 from prismonet.model.inference import InferenceConfig
 from prismonet.geometry.camera import Camera, intrinsics_matrix, project
-from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, table_mapping
+from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, spare_highlights, table_mapping
 from realdata.io import PhotoError, load_photo
 from realdata.prepare import center_square, crop, resize, undistort
 
@@ -118,6 +118,52 @@ def test_table_colour_and_mapping():
     out = m.apply(img)
     assert np.allclose(estimate_table_color(out), 150 / 255, atol=0.01)
     assert ColorMapping(**m.to_dict()) == m  # recordable
+
+
+def test_spare_highlights_on_a_dark_table():
+    """A table at 0.15 under objects at 0.6 needs a gain of 3.92 to reach 0.588: the plain gain clips the objects to
+    white. The tone curve keeps the table where the gain puts it, lands the bright end exactly on 1, keeps hues
+    (channel ratios), keeps brightness order, and leaves what is darker than the table alone."""
+    goal = np.full(3, 150 / 255)
+    img = np.full((20, 20, 3), 0.15, np.float32)
+    img[:10, :10] = [0.6, 0.3, 0.15]  # an orange object, a quarter of the photo
+    img[12:14, 12:14] = [0.45, 0.45, 0.45]  # a dimmer grey one
+    img[15:17, 15:17] = 0.05  # a shadow
+    table = estimate_table_color(img)
+    m = table_mapping(table, goal)
+    assert (m.apply(img)[:10, :10, 0] == 1).all()  # clipped
+    t = spare_highlights(m, table, img, 50.0)  # the median is the table: no change
+    assert t == m
+    t = spare_highlights(m, table, img, 99.0)
+    g = 0.6 * m.gain[0]  # the object's largest channel after the gain, 2.35
+    assert t.gamma == pytest.approx(np.log(1 / goal[0]) / np.log(g / goal[0])) and t.pivot == pytest.approx(goal[0])
+    out = t.apply(img)
+    assert np.allclose(out[0, 0], [1.0, 0.5, 0.25], atol=1e-6)  # on 1, hue kept
+    assert np.allclose(out[19, 0], goal, atol=1e-6) and np.allclose(out[16, 16], m.apply(img)[16, 16])  # table, shadow
+    v = 0.45 * m.gain[0]
+    assert np.allclose(out[13, 13], goal[0] * (v / goal[0]) ** t.gamma, atol=1e-6)  # dimmer: compressed, still brighter
+    assert goal[0] < out[13, 13, 0] < 1.0
+    assert ColorMapping(**t.to_dict()) == t  # recordable
+    assert spare_highlights(m, table, img, None) == m
+
+
+def test_prepare_spares_the_highlights_of_a_dark_table(tmp_path):
+    """Through ``prepare_photos``: a dark table (0.15) under a large object shaded from 0.3 to 0.6. The plain gain
+    (3.9x) would clip the whole object to white; the tone curve puts the table on the training grey and keeps the
+    object's shading (brightness rising across it), clipping only its brightest columns: 1 % of the photo (164
+    pixels, about 4 of the object's 40-pixel columns). The record holds the tone curve."""
+    from realdata.pipeline import prepare_photos
+
+    img = np.full((128, 128, 3), round(0.15 * 255), np.uint8)
+    img[20:60, 20:60] = np.round(np.linspace(0.3, 0.6, 40) * 255).astype(np.uint8)[None, :, None]
+    cv2.imwrite(str(tmp_path / "dark.png"), img)
+    (rec,) = prepare_photos([tmp_path / "dark.png"], tmp_path / "out", box=(0, 0, 128, 128), size=128)
+    assert rec["color_mapping"]["gamma"] < 1
+    out = cv2.imread(str(tmp_path / "out" / "rgb" / "dark.png")).astype(np.float64) / 255
+    assert np.allclose(out[-1, -1], 150 / 255, atol=1.5 / 255)  # the table
+    row = out[40, 20:60, 1]
+    assert (np.diff(row) >= 0).all() and row[30] - row[0] > 0.15 and row[0] > 150 / 255 + 0.05
+    assert 3 <= (row == 1).sum() <= 6
 
 
 def test_table_mapping_is_limited_for_an_implausible_table(tmp_path):

@@ -51,7 +51,8 @@ def cmd_prepare(args) -> int:
     box, gain = box_and_gain(args)
     model, info = load_model(args.model)
     recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain,
-                          view=training_camera(model, info), metres_per_unit=args.unit, own_camera=args.own_camera)
+                          view=training_camera(model, info), metres_per_unit=args.unit, own_camera=args.own_camera,
+                          highlights=args.highlights)
     for r in recs:
         g = r["color_mapping"]["gain"]
         print(f"  {r['photo']}: {_placed(r)}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
@@ -67,7 +68,7 @@ def cmd_reconstruct(args) -> int:
     cfg = inference_config(args, has_depth=False)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                              elevation=args.elevation, tiling=_tiling(args))
+                              elevation=args.elevation, tiling=_tiling(args), highlights=args.highlights)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         if "tiles" in r:
@@ -91,11 +92,25 @@ def cmd_evaluate(args) -> int:
     cfg = inference_config(args, has_depth=False)
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                             elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args))
+                             elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args),
+                             highlights=args.highlights)
     print(format_real_table(result))
     print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
     return 0
+
+
+def _percentile(text: str) -> float | None:
+    """``--highlights``: a percentile in (0, 100], or ``none``."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not 0 < v <= 100:
+        raise argparse.ArgumentTypeError(f"expected a percentile in (0, 100] or none, got {text!r}")
+    return v
 
 
 def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
@@ -110,10 +125,16 @@ def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
                    help="metres per model unit (with a ground calibration; default: derived so that the photo camera is as far "
                         "from the table point it looks at as the training camera)")
     p.add_argument("--box", help="crop x0,y0,width,height (default: automatic, around the table)")
+    from realdata.color import HIGHLIGHT_PERCENTILE
+
     p.add_argument("--normalize", default="auto", choices=["auto", "flat", "none", "manual"],
-                   help="auto: map the table colour onto the training ground's; flat: first divide out the table's uneven "
-                        "light (a smooth field fitted to its pixels); none; manual (with --gain)")
+                   help="auto: map the table colour onto the training ground's (where that gain would clip more than 1 %% of "
+                        "the photo, as on a dark table, the brightness above the table's is compressed instead); flat: first "
+                        "divide out the table's uneven light (a smooth field fitted to its pixels); none; manual (with --gain)")
     p.add_argument("--gain", help="manual colour gain r,g,b (with --normalize manual)")
+    p.add_argument("--highlights", type=_percentile, default=HIGHLIGHT_PERCENTILE, metavar="PCT|none",
+                   help=f"with auto or flat: the percentile of the photo's brightness that the tone curve lands on 1 "
+                        f"(default {HIGHLIGHT_PERCENTILE:g}); none: the plain gain, which clips what it lifts beyond 1")
 
 
 def add_parsers(sub) -> None:
