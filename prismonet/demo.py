@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from prismonet.files import write_atomic
+
 
 def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, gt_depth) -> dict:
     """The paper's measures of one scene (numpy arrays without the batch axis)."""
@@ -64,7 +66,7 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}
     result = {"model": str(model), "inference": cfg.record(), "steps": cfg.describe(), "refine_passes": net.cfg.refine_passes,
               "scenes": records, "mean": mean}
-    (out / "metrics.json").write_text(json.dumps(result, indent=1))
+    write_atomic(out / "metrics.json", json.dumps(result, indent=1))
     return result
 
 

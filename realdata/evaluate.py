@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prismonet.files import write_atomic
 from realdata.boxes import box_iou
 from realdata.color import HIGHLIGHT_PERCENTILE
 
@@ -129,7 +130,7 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
                "foreground_IoU": float(np.mean([r["foreground_IoU"] for r in rows])),
                "PSNR": float(np.mean([list(r["psnr"].values())[-1] for r in rows]))}
     result = {"photos": rows, "overall": overall}
-    (Path(out) / "real_evaluation.json").write_text(json.dumps(result, indent=1))
+    write_atomic(Path(out) / "real_evaluation.json", json.dumps(result, indent=1))
     return result
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.files import write_atomic
 from realdata.color import HIGHLIGHT_PERCENTILE
 
 MIN_PIXELS = 25
@@ -124,7 +125,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     if tiles > 1:
         results = [_merged(photo, [r for r in results if r["photo"] == photo], out, net, resolution if meshes else None, mesh_format)
                    for photo in dict.fromkeys(r["photo"] for r in results)]
-    (out / "summary.json").write_text(json.dumps(results, indent=1))
+    write_atomic(out / "summary.json", json.dumps(results, indent=1))
     return results
 
 
@@ -193,7 +194,7 @@ def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
     for r in whole:
         rec = tiled.get(r["photo"], r)
         results.append({**rec, "reading": "tiles" if r["photo"] in tiled else "whole", "whole_median_px": size[r["photo"]]})
-    (out / "summary.json").write_text(json.dumps(results, indent=1))
+    write_atomic(out / "summary.json", json.dumps(results, indent=1))
     return results
 
 

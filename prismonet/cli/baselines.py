@@ -26,7 +26,9 @@ def cmd_evaluate(args) -> int:
     print(f"| {r['baseline']} | " + " | ".join(f"{r[k]:.3f}" for k in keys) + " |")
     print(f"({r['scenes']} scenes of {args.data} [{args.split}]; instances: argmax of the slot masks, the slot covering most ground is the background)")
     if args.json:
-        Path(args.json).write_text(json.dumps(r, indent=2))
+        from prismonet.files import write_atomic
+
+        write_atomic(args.json, json.dumps(r, indent=2))
         print(f"wrote {args.json}")
     return 0
 

@@ -66,7 +66,9 @@ def cmd_evaluate(args) -> int:
     if len(results["by_count"]) > 1:
         print("\nper number of visible objects:\n" + format_counts(results))
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2))
+        from prismonet.files import write_atomic
+
+        write_atomic(args.json, json.dumps(results, indent=2))
         print(f"wrote {args.json}")
     return 0
 

@@ -26,7 +26,9 @@ def cmd_pretrain(args) -> int:
         report = evaluate_prior(prior, shape_set=args.shapes, resolution=args.resolution, progress=not args.quiet)
         prior.info["quality"] = {k: v for k, v in report.items() if k != "per_shape"}
         prior.save(Path(args.out) / "prior")
-        (Path(args.out) / "quality.json").write_text(json.dumps(report, indent=2))
+        from prismonet.files import write_atomic
+
+        write_atomic(Path(args.out) / "quality.json", json.dumps(report, indent=2))
         print(quality_line(report))
     return 0
 
@@ -38,7 +40,9 @@ def cmd_eval(args) -> int:
     report = evaluate_prior(load_prior(args.prior), shape_set=args.shapes, resolution=args.resolution, iou_resolution=args.iou_resolution,
                             progress=not args.quiet)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2))
+        from prismonet.files import write_atomic
+
+        write_atomic(args.json, json.dumps(report, indent=2))
     for row in report["per_shape"]:
         print(f"  {row['shape']:<12} Chamfer-L1 {row['chamfer_l1']:.4f}  IoU {row['iou']:.4f}")
     print(quality_line(report))
