@@ -10,7 +10,8 @@ direction times a radial fall-off to 1 - S/2 in the corners (seeded per photo). 
 darker or brighter by one factor, log-uniform in [LO, HI] (clipped), as a camera's exposure does. ``--ground-gray
 LO,HI`` repaints the table of each photo (every pixel no object covers, shadows kept) to a grey level uniform in
 [LO, HI] of full scale, keeping its tint, while the objects keep their own: a dark table under bright objects (coins
-on black velvet) asks the colour normalisation for a gain that an even exposure change never does.
+on black velvet) asks the colour normalisation for a gain that an even exposure change never does. ``--gray`` makes
+each photo grey (its luminance, Rec. 601 weights), last: objects that share the table's hue, as coins do.
 
     python3 -m prismonet data clevr --randomize --randomize-range focal_scale=0.8,1.8 \
         --randomize-range camera_elevation_deg=18,85 --objects 20 --min-objects 8 --area 4 --size 192 --shadows \
@@ -68,6 +69,7 @@ def main() -> None:
                     help="multiply each photo by an exposure drawn log-uniformly in [LO, HI], then clip (default: none)")
     ap.add_argument("--ground-gray", default=None, metavar="LO,HI",
                     help="repaint the table to a grey level uniform in [LO, HI] (0-1), keeping its tint and shadows")
+    ap.add_argument("--gray", action="store_true", help="make each photo grey (its luminance), last")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     ds = SceneDataset(args.data, args.split)
@@ -88,6 +90,8 @@ def main() -> None:
         if args.exposure:
             lo, hi = (float(v) for v in args.exposure.split(","))
             rgb = rgb * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+        if args.gray:
+            rgb = np.repeat((np.clip(rgb, 0, 1) @ np.array([0.299, 0.587, 0.114]))[..., None], 3, -1)
         rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
         cv2.imwrite(str(out / "photos" / f"scene_{i:04d}.png"), rgb[..., ::-1])
         boxes = scene_label(b.instance[0].numpy(), args.min_fraction)
