@@ -207,6 +207,21 @@ def test_auto_table_box_finds_the_table():
     assert auto_table_box(frag, min_side=64) == (50, 0, 300, 300)
 
 
+def test_table_region_joins_the_pieces_a_shadow_cuts(monkeypatch):
+    """A table cut in two by a dark band (a cast shadow) wider than the closing can bridge: the region is the box
+    of both large pieces. A stray table-coloured patch under a tenth of the largest piece's area stays out, and with
+    ``REGION_SHARE`` None the largest piece alone is taken."""
+    import realdata.prepare as prep
+
+    img = np.zeros((300, 400, 3), np.float32)
+    img[20:280, 20:380] = [0.5, 0.45, 0.4]  # the table
+    img[20:280, 180:230] = [0.2, 0.18, 0.16]  # a shadow across it: pieces of 260x160 and 260x150 pixels
+    img[285:295, 385:395] = [0.5, 0.45, 0.4]  # a stray patch of table colour, 100 pixels
+    assert prep.table_region(img) == (20, 20, 360, 260)
+    monkeypatch.setattr(prep, "REGION_SHARE", None)
+    assert prep.table_region(img) == (20, 20, 160, 260)
+
+
 def test_block_tower_reader_on_a_fixture(tmp_path):
     from realdata.blocktowers import load_tower, read_split
 
