@@ -97,7 +97,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     per_view.mkdir(parents=True, exist_ok=True)
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
-    results = []
+    results, shown = [], {}  # shown: each photo as uint8, loaded once for all its views' figures
     bar = tqdm(total=len(ds), desc="reconstruct", unit="photo" if tiles == 1 else "tile", disable=not progress)
     for start in range(0, len(ds), BATCH):
         rows = list(range(start, min(start + BATCH, len(ds))))
@@ -118,35 +118,43 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
 
         o = infer(net, b, cfg, loss_cfg, on_step=score)
         for j, (i, rec, elev) in enumerate(zip(rows, recs_b, elevs)):
-            results.append(_view_record(net, o, b, j, ds.names[i], rec, elev, psnr[j], per_view, fp, cfg, min_pixels, mesh_format,
-                                        resolution if meshes else None, asked))
+            results.append(_view_record(net, o, b, j, ds.names[i], rec, _photo_u8(rec["photo"], shown), elev, psnr[j], per_view, fp,
+                                        cfg, min_pixels, mesh_format, resolution if meshes else None, asked))
         bar.update(len(rows))
     bar.close()
     if tiles > 1:
-        results = [_merged(photo, [r for r in results if r["photo"] == photo], out, net, resolution if meshes else None, mesh_format)
-                   for photo in dict.fromkeys(r["photo"] for r in results)]
+        results = [_merged(photo, _photo_u8(photo, shown), [r for r in results if r["photo"] == photo], out, net,
+                           resolution if meshes else None, mesh_format) for photo in dict.fromkeys(r["photo"] for r in results)]
     write_atomic(out / "summary.json", json.dumps(results, indent=1))
     return results
 
 
-def _view_record(net, o, b, j, name, rec, elev, psnr, per_view, fp, cfg, min_pixels, mesh_format, resolution, asked) -> dict:
-    """Write one prepared view's outputs (row ``j`` of the batch ``b`` and its output ``o``): figure, latent scene,
-    instance image and (with a ``resolution``) the mesh of the objects found; return its record."""
+def _photo_u8(path: str, cache: dict) -> np.ndarray:
+    """The photo at ``path`` as ``(H, W, 3)`` uint8 RGB for figures, loaded once per ``cache``."""
+    if path not in cache:
+        from realdata.io import load_photo
+
+        cache[path] = (np.clip(load_photo(path), 0, 1) * 255).round().astype(np.uint8)
+    return cache[path]
+
+
+def _view_record(net, o, b, j, name, rec, photo, elev, psnr, per_view, fp, cfg, min_pixels, mesh_format, resolution, asked) -> dict:
+    """Write one prepared view's outputs (row ``j`` of the batch ``b`` and its output ``o``; ``photo`` the uint8 photo
+    it was read from): figure, latent scene, instance image and (with a ``resolution``) the mesh of the objects found;
+    return its record."""
     from prismonet.files import write_image
     from prismonet.scene import LatentScene
     from prismonet.scene.export import scene_mesh, write_mesh
     from prismonet.viz.decomposition import decomposition_figure
-    from realdata.io import load_photo
 
     stem = Path(rec["photo"]).stem
     own_cam = rec.get("own_camera", False)
     warnings = list(rec.get("warnings", []))
     if own_cam and _for_photo(asked, stem) is not None:
         warnings.append(f"elevation {_for_photo(asked, stem):g} deg ignored: this photo's calibrated camera is used as it is")
-    photo = load_photo(rec["photo"])
     keep = found_objects(o.composite.instance[j], o.obj_depth.shape[1], min_pixels)
     title = f"{Path(rec['photo']).name}: {len(keep)} objects found (>= {min_pixels} px), PSNR " + " -> ".join(f"{v:.1f}" for v in psnr.values()) + " dB"
-    fig = decomposition_figure(b.rgb, o, j, per_view / f"{name}.png", photo=(np.clip(photo, 0, 1) * 255).round().astype(np.uint8),
+    fig = decomposition_figure(b.rgb, o, j, per_view / f"{name}.png", photo=photo,
                                photo_outline=rec.get("outline"), title=title, min_pixels=min_pixels)
     p = o.latents.params
     scene_slots = list(range(p.z_sh.shape[1])) if p.active is None else torch.nonzero(p.active[j]).flatten().tolist()
@@ -232,13 +240,13 @@ def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS,
             "cut": [mask_cut(m, inner) for m in masks]}
 
 
-def _merged(photo: str, views: list[dict], out: Path, net=None, resolution: int | None = None, mesh_format: str = "ply") -> dict:
+def _merged(photo: str, img: np.ndarray, views: list[dict], out: Path, net=None, resolution: int | None = None,
+            mesh_format: str = "ply") -> dict:
     """One photo's record from its tiles' records: their detections merged (``realdata.tiles``), assembled into one
-    scene (``realdata.assemble``), and a figure."""
+    scene (``realdata.assemble``), and a figure (``img``: the photo as uint8)."""
     from prismonet.scene import LatentScene
     from prismonet.viz.tiled_photo import tiled_photo_figure
     from realdata.assemble import assemble_scene, view_box
-    from realdata.io import load_photo
     from realdata.tiles import merge_detections
 
     boxes, scores, cut, picks = [], [], [], []
@@ -251,7 +259,6 @@ def _merged(photo: str, views: list[dict], out: Path, net=None, resolution: int 
     boxes_a = np.array(boxes, np.float64).reshape(-1, 4)
     kept = merge_detections(boxes_a, np.array(scores), np.array(cut, bool))
     stem = Path(photo).stem
-    img = (np.clip(load_photo(photo), 0, 1) * 255).round().astype(np.uint8)
     tile_boxes = [tuple(v["prepare"]["crop_box"]) for v in views]
     chosen = [picks[k] for k in kept]
     scene = scene_path = rendered = None

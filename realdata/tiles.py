@@ -20,10 +20,9 @@ objects into one scene of the whole photo.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
-
-from dataclasses import dataclass
 
 MIN_ZOOM = 1.15
 MAX_ZOOM = 3.0
