@@ -210,6 +210,45 @@ def test_input_blur_and_noise_ranges(batch):
     assert stds.min() >= 0.009 and stds.max() <= 0.051 and stds.max() - stds.min() > 0.01
 
 
+def test_gray_share_makes_chosen_images_grey_input_and_target(batch):
+    """``gray_share``: the drawn images carry their Rec. 601 luma in all three channels (hand-computed on pure
+    red, green and blue), the others are untouched, the background targets of the grey scenes turn grey too,
+    and 0 draws nothing, so older runs keep their random stream."""
+    from dataclasses import replace
+
+    from prismonet.model.losses import LossConfig
+    from prismonet.data.gray import LUMA, to_gray
+    from prismonet.model.trainer import TrainConfig, gray_batch
+
+    rgb = torch.zeros(3, 3, 2, 2)
+    for c in range(3):
+        rgb[c, c] = 1.0  # image c is pure red, green or blue
+    out = to_gray(rgb, torch.tensor([True, True, False]))
+    for c in range(2):
+        torch.testing.assert_close(out[c], torch.full((3, 2, 2), LUMA[c]), rtol=0, atol=1e-7)
+    torch.testing.assert_close(out[2], rgb[2], rtol=0, atol=0)
+    assert LUMA == (0.299, 0.587, 0.114)
+
+    g = torch.Generator().manual_seed(5)
+    same, none = gray_batch(batch, None, TrainConfig(), g)
+    assert same is batch and none is None and torch.equal(g.get_state(), torch.Generator().manual_seed(5).get_state())
+    colourful = replace(batch, rgb=torch.rand(8, 3, 16, 16, generator=torch.Generator().manual_seed(0)))
+    bg = torch.tensor([[1.0, 0.0, 0.0]]).expand(8, 3)
+    got, (t, mask) = gray_batch(colourful, ({"bg_color": bg}, torch.ones(8)), TrainConfig(gray_share=0.5), torch.Generator().manual_seed(1))
+    which = torch.rand(8, generator=torch.Generator().manual_seed(1)) < 0.5  # the draw gray_batch makes
+    assert 0 < int(which.sum()) < 8
+    for b in range(8):
+        grey = bool((got.rgb[b] == got.rgb[b, :1]).all())
+        assert grey == bool(which[b])
+        torch.testing.assert_close(t["bg_color"][b], torch.full((3,), LUMA[0]) if which[b] else bg[b], rtol=0, atol=1e-7)
+        if not which[b]:
+            assert torch.equal(got.rgb[b], colourful.rgb[b])
+    with pytest.raises(ValueError, match="gray_share"):
+        TrainConfig(gray_share=1.5)
+    with pytest.raises(ValueError, match="distill_texture"):
+        TrainConfig(gray_share=0.5, loss=LossConfig(w_distill=0.5))
+
+
 def test_mask_loss_leaves_out_the_far_clip_when_asked():
     """With ``far_clip``, pixels whose depth reads the far clip add nothing to L_mask (there depth cannot
     tell an object from the ground); the other pixels' BCE is unchanged. By hand, blur off."""

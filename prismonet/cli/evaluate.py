@@ -44,12 +44,16 @@ def cmd_evaluate(args) -> int:
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds, any_camera=args.any_camera)
+    if args.gray:
+        from prismonet.data.gray import GrayScenes
+
+        ds = GrayScenes(ds)
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
                              inference=cfg, loss_cfg=training_loss_config(info))
     trained = info.get("model", {}).get("num_slots", "?")
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
-          f"{cfg.describe()}{refined_note(model.cfg.refine_passes)}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+          f"{'grey input; ' if args.gray else ''}{cfg.describe()}{refined_note(model.cfg.refine_passes)}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
     print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")
@@ -117,6 +121,7 @@ def _add_evaluate(sub) -> None:
     ev.add_argument("--batch", type=arg_int(1, 4096), default=16)
     ev.add_argument("--limit", type=arg_int(1), help="evaluate only the first N scenes")
     ev.add_argument("--any-camera", action="store_true", help="evaluate scenes whose camera differs from training (measures then mean little)")
+    ev.add_argument("--gray", action="store_true", help="make every input image grey (its luminance), as a greyscale photo is")
     ev.add_argument("--json", help="also write the results here")
     ev.add_argument("--quiet", action="store_true")
     add_inference_args(ev)

@@ -79,6 +79,11 @@ class TrainConfig:
     input_blur: float = 0.0
     """> 0: each input image is blurred by a Gaussian of std U(0, input_blur) pixels (focus, motion); the
     losses still compare with the sharp image."""
+    gray_share: float = 0.0
+    """Share of training images made grey (their luminance, ``prismonet.data.gray.LUMA``, in all three channels), input and image
+    target alike, as a greyscale photo is: a model trained on colour alone reads grey photos badly (EVALUATION.md,
+    session 53). Each image is drawn on its own. With distillation, the background target is made grey too; a
+    texture-latent target cannot be, so ``loss.distill_texture`` must then be 0."""
     depth_noise_eta: float = 0.0
     """Noisy-depth ablation: noise with sigma = eta d^2 on the target depth (the paper: 0.001)."""
     depth_clip: float = 12.0
@@ -117,6 +122,11 @@ class TrainConfig:
                 raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {self.device!r}") from None
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
+        if not 0 <= self.gray_share <= 1:
+            raise ValueError(f"gray_share must be in [0, 1], got {self.gray_share}")
+        if self.gray_share > 0 and self.loss.w_distill > 0 and self.loss.distill_texture > 0:
+            raise ValueError("gray_share > 0 with distillation needs loss.distill_texture = 0: the texture-latent "
+                             "targets are the colour scene's, and a grey image cannot match them")
         if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
             raise ValueError("input_noise, input_noise_max, input_blur and depth_noise_eta must be non-negative")
         if self.lr_decay_from is not None and not 0 <= self.lr_decay_from < self.steps:
@@ -237,6 +247,23 @@ def check_dataset_fits(ds, cfg: TrainConfig) -> None:
         raise ValueError(f"{cfg.data}: split {cfg.split!r} has NaN or infinite depth; training needs valid RGB-D")
     if not (np.asarray(depth[: min(len(ds), 256)]) > 0).any():
         raise ValueError(f"{cfg.data}: split {cfg.split!r} has no depth (all zero); training needs RGB-D")
+
+
+def gray_batch(batch, targets, cfg: TrainConfig, g: torch.Generator):
+    """With ``cfg.gray_share``: the batch with a random share of its images grey (input and target), and the
+    distillation targets' background colours of those scenes grey too. Unchanged otherwise."""
+    if cfg.gray_share <= 0:
+        return batch, targets
+    from dataclasses import replace
+
+    from prismonet.data.gray import to_gray
+
+    which = torch.rand(batch.rgb.shape[0], generator=g) < cfg.gray_share
+    batch = replace(batch, rgb=to_gray(batch.rgb, which))
+    if targets is not None:
+        t, mask = targets
+        targets = ({**t, "bg_color": to_gray(t["bg_color"], which)}, mask)
+    return batch, targets
 
 
 def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -387,13 +414,14 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
             batch = ds.batch(idx.tolist()).to(device)
+            looked_up = None if targets is None else targets.lookup(idx.to(device))
+            batch, looked_up = gray_batch(batch, looked_up, cfg, g)
             image, target_depth = make_inputs(batch, cfg, g)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(cfg, step)
             net.train()
             out = net(image, batch.K, batch.T_world_cam, batch.ground_z)
-            terms = compute_losses(model, out, batch, cfg.loss, step, target_depth,
-                                   None if targets is None else targets.lookup(idx.to(device)))
+            terms = compute_losses(model, out, batch, cfg.loss, step, target_depth, looked_up)
             opt.zero_grad(set_to_none=True)
             if not math.isfinite(float(terms.total.detach())):
                 nonfinite += 1

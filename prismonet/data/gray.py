@@ -1,0 +1,39 @@
+"""Greyscale images: what a greyscale camera records of a scene, for training (``TrainConfig.gray_share``) and for
+measuring a model on grey input (``prismonet evaluate --gray``). Two of the five labelled photos are grey
+(EVALUATION.md, session 53)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+LUMA = (0.299, 0.587, 0.114)
+"""Rec. 601 luma weights: what ``cv2.cvtColor(..., COLOR_RGB2GRAY)`` and most greyscale photos record."""
+
+
+def to_gray(rgb: torch.Tensor, which: torch.Tensor | None = None) -> torch.Tensor:
+    """``rgb (B, 3, ...)`` with the images where ``which (B,)`` is true (all, without it) replaced by their luminance
+    in all three channels (``LUMA``); the others unchanged."""
+    luma = torch.tensor(LUMA, dtype=rgb.dtype, device=rgb.device).reshape(1, 3, *([1] * (rgb.dim() - 2)))
+    gray = (rgb * luma).sum(1, keepdim=True).expand_as(rgb)
+    if which is None:
+        return gray.contiguous()
+    return torch.where(which.reshape(-1, *([1] * (rgb.dim() - 1))).to(rgb.device), gray, rgb)
+
+
+class GrayScenes:
+    """A view of a ``SceneDataset`` whose images are grey; everything else (depth, labels, cameras) as it is."""
+
+    def __init__(self, ds) -> None:
+        self.ds = ds
+
+    def __getattr__(self, name):
+        return getattr(self.ds, name)
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def batch(self, indices):
+        b = self.ds.batch(indices)
+        return replace(b, rgb=to_gray(b.rgb))
