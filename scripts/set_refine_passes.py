@@ -6,7 +6,8 @@
 ``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: anchored steps after refinement, into empty slots);
 ``--reanchor-keep X`` sets ``reanchor_keep_logit``, the keep logit a re-anchored slot must beat (``none``: never
 dropped); ``--anchor-shade K`` sets ``anchor_shade_min``, the least even darkening the anchor rule reads as a cast
-shadow (``none``: off, as trained).
+shadow (``none``: off, as trained); ``--anchor-gray T`` sets ``anchor_gray_tol``, the luminance difference the anchor
+rule reads as unexplained in a greyscale image (``none``: grey images read as colour ones).
 
     python3 scripts/set_refine_passes.py tabletop_keep 2 runs/tabletop_keep_noshade --anchor-shade none   # session 48's
 
@@ -37,6 +38,9 @@ def main() -> None:
     ap.add_argument("--anchor-shade", default=None, metavar="K",
                     help="also set anchor_shade_min: an evenly darkened composition by a factor >= K counts as a shadow "
                          "('none': off)")
+    ap.add_argument("--anchor-gray", default=None, metavar="T",
+                    help="also set anchor_gray_tol: in a greyscale image, a luminance miss above T is unexplained and "
+                         "nothing reads as a shadow ('none': off)")
     args = ap.parse_args()
     model, info = load_model(args.model)
     if not model.cfg.refine_passes or args.passes < 1:
@@ -52,6 +56,10 @@ def main() -> None:
         if not model.cfg.anchor:
             raise SystemExit(f"{args.model}: --anchor-shade needs an anchored model")
         fields["anchor_shade_min"] = number_or_none("--anchor-shade", args.anchor_shade)
+    if args.anchor_gray is not None:
+        if not model.cfg.anchor:
+            raise SystemExit(f"{args.model}: --anchor-gray needs an anchored model")
+        fields["anchor_gray_tol"] = number_or_none("--anchor-gray", args.anchor_gray)
     try:
         cfg = replace(model.cfg, **fields)
     except ValueError as e:

@@ -80,6 +80,39 @@ def test_a_shadow_counts_as_explained_with_shade_min():
     assert model.anchor_rule().shade_min == 0.5 and model.anchor_rule().shade_tol == 0.03
 
 
+def test_grey_images_are_read_by_luminance_with_gray_tol():
+    """``AnchorRule.gray_tol``: in a grey image, a patch 0.08 brighter than the grey ground is unexplained at 0.06 and
+    at 0.15 would not be; a grey patch darkened to 0.7 of the ground is an object, not a shadow; a composition of another
+    hue but the input's luminance explains it. A colour image in the same batch is read as without the setting."""
+    from prismonet.data.gray import LUMA
+    from prismonet.model.unexplained import is_gray, luma
+
+    g = 0.5
+    comp = torch.full((2, 3, 8, 8), g)
+    image = comp.clone()
+    image[:, :, 0:2, :] = g + 0.08  # a slightly brighter grey object
+    image[:, :, 2:4, :] = 0.7 * g  # an even darkening: an object in a grey photo, a shadow in a colour one
+    image[:, :, 4:6, :] = g + 0.03  # within any tolerance
+    teal = torch.tensor([0.3, 0.6, 0.5])
+    comp[:, :, 6:8, :] = teal.view(3, 1, 1)  # a render of another hue...
+    image[:, :, 6:8, :] = float((teal * torch.tensor(LUMA)).sum())  # ...whose luminance the grey input records
+    image[1, :, 0, 0] = torch.tensor([0.6, 0.5, 0.5])  # one coloured pixel: image 1 is a colour image
+    assert is_gray(image).tolist() == [True, False]
+    torch.testing.assert_close(luma(image[:1, :, 6:8]), torch.full((1, 2, 8), float((teal * torch.tensor(LUMA)).sum())))
+    rows = lambda m, b: [bool(m[b, 2 * i + 1].all()) for i in range(4)]  # noqa: E731 (row 1 of each pair: no odd pixel)
+    colour = AnchorRule(color_tol=0.15, shade_min=0.5)
+    grey = AnchorRule(color_tol=0.15, shade_min=0.5, gray_tol=0.06)
+    assert rows(colour.unexplained(image, comp), 0) == [False, False, False, True]
+    assert rows(grey.unexplained(image, comp), 0) == [True, True, False, False]
+    torch.testing.assert_close(grey.unexplained(image, comp)[1], colour.unexplained(image, comp)[1], rtol=0, atol=0)
+    assert not AnchorRule(color_tol=0.15, gray_tol=0.1).unexplained(image, comp)[0, 0:2].any()
+    with pytest.raises(ValueError, match="gray_tol"):
+        AnchorRule(gray_tol=0.0)
+    with pytest.raises(ValueError, match="anchor_gray_tol"):
+        ModelConfig(anchor=True, anchor_gray_tol=-1.0)
+    assert PriSMONet(ModelConfig(anchor=True, anchor_gray_tol=0.06)).anchor_rule().gray_tol == 0.06
+
+
 def test_a_component_explained_in_vain_is_not_proposed_again():
     image = torch.tensor(GROUND).view(1, 3, 1, 1).repeat(2, 1, 32, 32)
     image[:, :, 4:12, 4:12] = torch.tensor([0.9, 0.1, 0.1]).view(3, 1, 1)  # 64 px, the largest

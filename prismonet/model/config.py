@@ -95,6 +95,10 @@ class ModelConfig:
     None: off, as trained."""
     anchor_shade_tol: float = 0.03
     """With ``anchor_shade_min``: how far each channel's darkening may stray from their mean."""
+    anchor_gray_tol: float | None = None
+    """With ``anchor`` (inference; beyond the paper): in a greyscale input image, a pixel is unexplained where the
+    composition's luminance misses the input's by more than this, and no pixel reads as a shadow
+    (``AnchorRule.gray_tol``). None: grey images are read as colour ones, as trained."""
     reanchor_steps: int = 0
     """With ``anchor`` and a refiner, at inference (beyond the paper): after the refinement passes, up to this many
     more anchored encoder steps on what the *refined* slots leave unexplained, each into the scene's first empty slot,
@@ -118,6 +122,8 @@ class ModelConfig:
             raise ValueError(f"num_slots must be at most {MAX_SLOTS} and image_size at most {MAX_IMAGE_SIDE}, got {self.num_slots}, {self.image_size}")
         if self.anchor and self.presence:
             raise ValueError("anchor and presence are two ways of leaving slots empty: choose one")
+        if self.anchor_gray_tol is not None and not self.anchor_gray_tol > 0:
+            raise ValueError(f"anchor_gray_tol must be > 0 (or None), got {self.anchor_gray_tol}")
         if self.anchor_shade_min is not None and not (0 < self.anchor_shade_min < SHADE_MAX and self.anchor_shade_tol > 0):
             raise ValueError(f"anchor_shade_min must be in (0, {SHADE_MAX}) and anchor_shade_tol > 0, got {self.anchor_shade_min} and {self.anchor_shade_tol}")
         if self.anchor_min_area < 1 or not self.anchor_color_tol > 0:

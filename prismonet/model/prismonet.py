@@ -112,7 +112,8 @@ class PriSMONet(nn.Module):
 
     def anchor_rule(self) -> AnchorRule:
         return AnchorRule(color_tol=self.cfg.anchor_color_tol, min_area=self.cfg.anchor_min_area,
-                          shade_min=self.cfg.anchor_shade_min, shade_tol=self.cfg.anchor_shade_tol)
+                          shade_min=self.cfg.anchor_shade_min, shade_tol=self.cfg.anchor_shade_tol,
+                          gray_tol=self.cfg.anchor_gray_tol)
 
     def decode_latent(self, raw: torch.Tensor, K: torch.Tensor | None = None, T_world_cam: torch.Tensor | None = None,
                       ground_z: torch.Tensor | None = None, anchor_uv: torch.Tensor | None = None) -> SceneParams:

@@ -78,6 +78,23 @@ def shaded(image: torch.Tensor, comp_image: torch.Tensor, k_min: float, tol: flo
     return same & (k >= k_min) & (k <= SHADE_MAX) & (comp_image.amax(1) > 0.15)
 
 
+GRAY_SPREAD = 0.01
+"""An image is grey (``is_gray``) where no pixel's channels differ by more than this (about 2.5 / 255: rounding)."""
+
+
+def is_gray(image: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool: the images of ``image (B, 3, H, W)`` whose every pixel has equal channels (within
+    ``GRAY_SPREAD``): a greyscale photo, which records luminance alone."""
+    return (image.amax(1) - image.amin(1)).flatten(1).amax(1) <= GRAY_SPREAD
+
+
+def luma(image: torch.Tensor) -> torch.Tensor:
+    """``(B, H, W)``: the luminance of ``image (B, 3, H, W)`` (``prismonet.data.gray.LUMA``)."""
+    from prismonet.data.gray import LUMA
+
+    return (image * torch.tensor(LUMA, dtype=image.dtype, device=image.device)[None, :, None, None]).sum(1)
+
+
 @dataclass(frozen=True)
 class AnchorRule:
     """What counts as unexplained, and how large a part must be to be worth a slot."""
@@ -98,22 +115,35 @@ class AnchorRule:
     (each channel's ratio within ``shade_tol`` of their mean; the composition not black): a shadow, which the
     renderer does not cast. The price: a dark object of the ground's own hue reads as a shadow."""
     shade_tol: float = 0.03
+    gray_tol: float | None = None
+    """With a value (beyond the paper, for greyscale photos): in a grey input image (``is_gray``) a pixel is unexplained
+    where the composition's luminance misses the input's by more than this, and no pixel reads as a shadow. A grey
+    image gives only luminance: the colour differences ``color_tol`` was set for shrink to luminance differences, and
+    every change in it is an even darkening. Colour images are read as without it. None: grey images are read as
+    colour ones."""
 
     def __post_init__(self) -> None:
         if not self.color_tol > 0 or self.open < 0 or self.min_area < 1 or self.min_gain < 1:
             raise ValueError(f"anchor rule: color_tol must be > 0, open >= 0, min_area >= 1 and min_gain >= 1, "
                              f"got {self.color_tol}, {self.open}, {self.min_area} and {self.min_gain}")
+        if self.gray_tol is not None and not self.gray_tol > 0:
+            raise ValueError(f"anchor rule: gray_tol must be > 0 (or None), got {self.gray_tol}")
         if self.shade_min is not None and not (0 < self.shade_min < SHADE_MAX and self.shade_tol > 0):
             raise ValueError(f"anchor rule: shade_min must be in (0, {SHADE_MAX}) and shade_tol > 0, "
                              f"got {self.shade_min} and {self.shade_tol}")
 
     def unexplained(self, image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
         """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses (shadows excepted with
-        ``shade_min``)."""
+        ``shade_min``; in grey images, with ``gray_tol``, the pixels whose luminance it misses)."""
         bad = color_unexplained(image, comp_image, self.color_tol)
-        if self.shade_min is None:
-            return bad
-        return bad & ~shaded(image, comp_image, self.shade_min, self.shade_tol)
+        if self.shade_min is not None:
+            bad = bad & ~shaded(image, comp_image, self.shade_min, self.shade_tol)
+        if self.gray_tol is not None:
+            gray = is_gray(image)
+            if bool(gray.any()):
+                dark_or_bright = (luma(comp_image) - luma(image)).abs() > self.gray_tol
+                bad = torch.where(gray[:, None, None], dark_or_bright, bad)
+        return bad
 
     def failed(self, anchors: "Anchors", image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
         """``(B, H, W)`` bool: the components of ``anchors`` that the composition with the new slot,
