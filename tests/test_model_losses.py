@@ -230,13 +230,13 @@ def test_gray_share_makes_chosen_images_grey_input_and_target(batch):
     assert LUMA == (0.299, 0.587, 0.114)
 
     g = torch.Generator().manual_seed(5)
-    same, none = gray_batch(batch, None, TrainConfig(), g)
-    assert same is batch and none is None and torch.equal(g.get_state(), torch.Generator().manual_seed(5).get_state())
+    same, none, which = gray_batch(batch, None, TrainConfig(), g)
+    assert same is batch and none is None and which is None and torch.equal(g.get_state(), torch.Generator().manual_seed(5).get_state())
     colourful = replace(batch, rgb=torch.rand(8, 3, 16, 16, generator=torch.Generator().manual_seed(0)))
     bg = torch.tensor([[1.0, 0.0, 0.0]]).expand(8, 3)
-    got, (t, mask) = gray_batch(colourful, ({"bg_color": bg}, torch.ones(8)), TrainConfig(gray_share=0.5), torch.Generator().manual_seed(1))
+    got, (t, mask), drawn = gray_batch(colourful, ({"bg_color": bg}, torch.ones(8)), TrainConfig(gray_share=0.5), torch.Generator().manual_seed(1))
     which = torch.rand(8, generator=torch.Generator().manual_seed(1)) < 0.5  # the draw gray_batch makes
-    assert 0 < int(which.sum()) < 8
+    assert 0 < int(which.sum()) < 8 and torch.equal(drawn, which)
     for b in range(8):
         grey = bool((got.rgb[b] == got.rgb[b, :1]).all())
         assert grey == bool(which[b])

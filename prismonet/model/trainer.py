@@ -250,10 +250,11 @@ def check_dataset_fits(ds, cfg: TrainConfig) -> None:
 
 
 def gray_batch(batch, targets, cfg: TrainConfig, g: torch.Generator):
-    """With ``cfg.gray_share``: the batch with a random share of its images grey (input and target), and the
-    distillation targets' background colours of those scenes grey too. Unchanged otherwise."""
+    """With ``cfg.gray_share``: the batch with a random share of its images grey (input and target), the
+    distillation targets' background colours of those scenes grey too, and the ``(B,)`` bool of which (``None``
+    without ``gray_share``: nothing drawn, the batch unchanged)."""
     if cfg.gray_share <= 0:
-        return batch, targets
+        return batch, targets, None
     from dataclasses import replace
 
     from prismonet.data.gray import to_gray
@@ -263,7 +264,7 @@ def gray_batch(batch, targets, cfg: TrainConfig, g: torch.Generator):
     if targets is not None:
         t, mask = targets
         targets = ({**t, "bg_color": to_gray(t["bg_color"], which)}, mask)
-    return batch, targets
+    return batch, targets, which
 
 
 def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -415,8 +416,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
             batch = ds.batch(idx.tolist()).to(device)
             looked_up = None if targets is None else targets.lookup(idx.to(device))
-            batch, looked_up = gray_batch(batch, looked_up, cfg, g)
+            batch, looked_up, grey = gray_batch(batch, looked_up, cfg, g)
             image, target_depth = make_inputs(batch, cfg, g)
+            if grey is not None:  # a greyscale sensor's noise is one channel's: the grey inputs stay grey
+                from prismonet.data.gray import to_gray
+
+                image = to_gray(image, grey)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(cfg, step)
             net.train()
