@@ -29,6 +29,12 @@ MAX_FIELD = 4.0
 pixels the polynomial extrapolates."""
 ROBUST_K = 2.5
 """Pixels further than ``ROBUST_K`` times the residuals' scaled median absolute deviation are dropped."""
+GRAY_BAND: float | None = 0.7
+"""In a greyscale photo every pixel has the table's chromaticity, objects too. There the fit starts from the pixels
+whose log-brightness is within this of the table's (``realdata.color.estimate_table_color``, as the colour mapping
+reads it): a factor of 2 either way. None: chromaticity alone, as for colour photos."""
+GRAY_SPREAD = 0.01
+"""A photo is greyscale where no pixel's channels differ by more than this."""
 
 
 def _design(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
@@ -50,6 +56,11 @@ def illumination_field(image: np.ndarray, order: int = ORDER) -> np.ndarray:
     table = np.median(chroma.reshape(-1, 3)[key == np.bincount(key).argmax()], axis=0)
     use = (np.linalg.norm(chroma - table, axis=-1) < CHROMA_TOLERANCE).reshape(-1)
     use &= lum.reshape(-1) > 0.02  # black carries no brightness to fit
+    if GRAY_BAND is not None and float((small.max(-1) - small.min(-1)).max()) <= GRAY_SPREAD:
+        from realdata.color import estimate_table_color
+
+        table_lum = float(estimate_table_color(small).mean()) + 1e-3
+        use &= (np.abs(np.log(lum) - np.log(table_lum)) < GRAY_BAND).reshape(-1)
     yy, xx = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
     A = _design(xx.reshape(-1), yy.reshape(-1), order)
     target = np.log(lum).reshape(-1)
