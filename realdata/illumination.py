@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from prismonet.data.gray import GRAY_SPREAD
+from realdata.color import estimate_table_color
+
 ORDER = 2
 """Degree of the log-brightness polynomial."""
 FIT_SIDE = 96
@@ -33,8 +36,6 @@ GRAY_BAND: float | None = 0.7
 """In a greyscale photo every pixel has the table's chromaticity, objects too. There the fit starts from the pixels
 whose log-brightness is within this of the table's (``realdata.color.estimate_table_color``, as the colour mapping
 reads it): a factor of 2 either way. None: chromaticity alone, as for colour photos."""
-GRAY_SPREAD = 0.01
-"""A photo is greyscale where no pixel's channels differ by more than this."""
 
 
 def _design(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
@@ -56,8 +57,7 @@ def illumination_field(image: np.ndarray, order: int = ORDER) -> np.ndarray:
     table = np.median(chroma.reshape(-1, 3)[key == np.bincount(key).argmax()], axis=0)
     use = (np.linalg.norm(chroma - table, axis=-1) < CHROMA_TOLERANCE).reshape(-1)
     use &= lum.reshape(-1) > 0.02  # black carries no brightness to fit
-    if GRAY_BAND is not None and float((small.max(-1) - small.min(-1)).max()) <= GRAY_SPREAD:
-        from realdata.color import estimate_table_color
+    if GRAY_BAND is not None and float((small.max(-1) - small.min(-1)).max()) <= GRAY_SPREAD:  # a greyscale photo
 
         table_lum = float(estimate_table_color(small).mean()) + 1e-3
         use &= (np.abs(np.log(lum) - np.log(table_lum)) < GRAY_BAND).reshape(-1)

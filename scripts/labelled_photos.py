@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from prismonet.data.gray import LUMA
+
 
 def camera_elevation_deg(T_world_cam: np.ndarray) -> float:
     """Degrees below the horizon of the camera's optical axis (world z up)."""
@@ -91,7 +93,7 @@ def main() -> None:
             lo, hi = (float(v) for v in args.exposure.split(","))
             rgb = rgb * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
         if args.gray:
-            rgb = np.repeat((np.clip(rgb, 0, 1) @ np.array([0.299, 0.587, 0.114]))[..., None], 3, -1)
+            rgb = np.repeat((np.clip(rgb, 0, 1) @ np.array(LUMA))[..., None], 3, -1)
         rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
         cv2.imwrite(str(out / "photos" / f"scene_{i:04d}.png"), rgb[..., ::-1])
         boxes = scene_label(b.instance[0].numpy(), args.min_fraction)

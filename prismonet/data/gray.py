@@ -12,11 +12,26 @@ LUMA = (0.299, 0.587, 0.114)
 """Rec. 601 luma weights: what ``cv2.cvtColor(..., COLOR_RGB2GRAY)`` and most greyscale photos record."""
 
 
+GRAY_SPREAD = 0.01
+"""An image is grey (``is_gray``) where no pixel's channels differ by more than this (about 2.5 / 255: rounding)."""
+
+
+def luma(rgb: torch.Tensor) -> torch.Tensor:
+    """``(B, ...)``: the luminance of ``rgb (B, 3, ...)`` (``LUMA``)."""
+    w = torch.tensor(LUMA, dtype=rgb.dtype, device=rgb.device).reshape(1, 3, *([1] * (rgb.dim() - 2)))
+    return (rgb * w).sum(1)
+
+
+def is_gray(image: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool: the images of ``image (B, 3, H, W)`` whose every pixel has equal channels (within
+    ``GRAY_SPREAD``): a greyscale photo, which records luminance alone."""
+    return (image.amax(1) - image.amin(1)).flatten(1).amax(1) <= GRAY_SPREAD
+
+
 def to_gray(rgb: torch.Tensor, which: torch.Tensor | None = None) -> torch.Tensor:
     """``rgb (B, 3, ...)`` with the images where ``which (B,)`` is true (all, without it) replaced by their luminance
     in all three channels (``LUMA``); the others unchanged."""
-    luma = torch.tensor(LUMA, dtype=rgb.dtype, device=rgb.device).reshape(1, 3, *([1] * (rgb.dim() - 2)))
-    gray = (rgb * luma).sum(1, keepdim=True).expand_as(rgb)
+    gray = luma(rgb).unsqueeze(1).expand_as(rgb)
     if which is None:
         return gray.contiguous()
     return torch.where(which.reshape(-1, *([1] * (rgb.dim() - 1))).to(rgb.device), gray, rgb)

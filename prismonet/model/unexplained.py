@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from prismonet.data.gray import is_gray, luma
 from prismonet.model.config import SHADE_MAX
 from prismonet.model.stopping import color_unexplained, erode
 
@@ -76,23 +77,6 @@ def shaded(image: torch.Tensor, comp_image: torch.Tensor, k_min: float, tol: flo
     k = ratio.mean(1)
     same = (ratio - k[:, None]).abs().amax(1) < tol
     return same & (k >= k_min) & (k <= SHADE_MAX) & (comp_image.amax(1) > 0.15)
-
-
-GRAY_SPREAD = 0.01
-"""An image is grey (``is_gray``) where no pixel's channels differ by more than this (about 2.5 / 255: rounding)."""
-
-
-def is_gray(image: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` bool: the images of ``image (B, 3, H, W)`` whose every pixel has equal channels (within
-    ``GRAY_SPREAD``): a greyscale photo, which records luminance alone."""
-    return (image.amax(1) - image.amin(1)).flatten(1).amax(1) <= GRAY_SPREAD
-
-
-def luma(image: torch.Tensor) -> torch.Tensor:
-    """``(B, H, W)``: the luminance of ``image (B, 3, H, W)`` (``prismonet.data.gray.LUMA``)."""
-    from prismonet.data.gray import LUMA
-
-    return (image * torch.tensor(LUMA, dtype=image.dtype, device=image.device)[None, :, None, None]).sum(1)
 
 
 @dataclass(frozen=True)
