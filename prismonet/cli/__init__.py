@@ -13,7 +13,8 @@ the pipeline, each building its own sub-parser:
 ``cli.bench``             ``bench data | train | search | render``
 ========================  =====================================================================
 
-Every command reports a bad input as one line, ``prismonet: error: ...``, and exit status 2: output
+Every command runs with freed memory kept for reuse (``prismonet.allocator``; ``PRISMONET_MALLOC=default`` turns it
+off). Every command reports a bad input as one line, ``prismonet: error: ...``, and exit status 2: output
 paths are checked before any work (each sub-parser declares them as ``outputs``), the library's
 typed errors become that line here, and a command that fails leaves no empty output folder behind.
 """
@@ -83,6 +84,7 @@ def _parse(argv: list[str] | None):
 
 def main(argv: list[str] | None = None) -> int:
     from calibration.intrinsics import CalibrationError
+    from prismonet.allocator import keep_freed_memory
     from prismonet.config import ConfigError
     from prismonet.data.errors import DatasetError, OutputDirError, PlacementError
     from prismonet.files import shown
@@ -98,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         return status
     new_dirs: list[Path] = []
     try:
+        keep_freed_memory()  # every command: no page faults for buffers a loop frees and allocates again
         new_dirs = _checked_outputs(args)
         rc = args.func(args)
         new_dirs = []
