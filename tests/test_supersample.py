@@ -32,14 +32,14 @@ def scene(dtype=D64):
     return p, K, T
 
 
-SETTINGS = RenderSettings(samples=48, refine_steps=8)
+SETTINGS = RenderSettings(samples=48, refine_steps=8, far_depth=1e3)
 
 
 def test_coverage_of_a_disc():
     """White sphere on black: each pixel's value is the share of it the sphere's outline covers. The outline of a
     sphere of radius R at distance d on the axis is a circle of radius f R / sqrt(d^2 - R^2) pixels."""
     p, K, T = scene()
-    img = supersampled_image(sphere_sdf, white, p, torch.zeros(1, 3, dtype=D64), K, T, SIDE, SIDE, -1e3, 1e3, 8, SETTINGS)
+    img = supersampled_image(sphere_sdf, white, p, torch.zeros(1, 3, dtype=D64), K, T, SIDE, SIDE, -1e3, 8, SETTINGS)
     cover = img[0, 0]
     r = F_PX * R_OBJ / math.sqrt(DIST**2 - R_OBJ**2)
     assert torch.equal(img[0, 0], img[0, 1]) and torch.equal(img[0, 0], img[0, 2])
@@ -54,7 +54,7 @@ def test_coverage_of_a_disc():
 def test_one_sample_is_the_render():
     p, K, T = scene()
     bg = torch.tensor([[0.2, 0.3, 0.4]], dtype=D64)
-    img = supersampled_image(sphere_sdf, white, p, bg, K, T, SIDE, SIDE, -1e3, 1e3, 1, SETTINGS)
+    img = supersampled_image(sphere_sdf, white, p, bg, K, T, SIDE, SIDE, -1e3, 1, SETTINGS)
     obj = render_objects(sphere_sdf, white, p, K, T, SIDE, SIDE, SETTINGS)
     ref = composite(obj.depth, obj.mask, obj.color, bg, plane_depth(K, T, SIDE, SIDE, -1e3, 1e3)).image
     assert torch.equal(img, ref)
@@ -63,4 +63,4 @@ def test_one_sample_is_the_render():
 def test_bad_samples():
     p, K, T = scene()
     with pytest.raises(ValueError, match="samples per pixel side: expected at least 1, got 0"):
-        supersampled_image(sphere_sdf, white, p, torch.zeros(1, 3, dtype=D64), K, T, SIDE, SIDE, -1e3, 1e3, 0)
+        supersampled_image(sphere_sdf, white, p, torch.zeros(1, 3, dtype=D64), K, T, SIDE, SIDE, -1e3, 0)

@@ -134,10 +134,11 @@ def cmd_views(args) -> int:
         cam = Camera(cam.K, look_at(eye, target), cam.height, cam.width)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        write_image(out / "view.png", to_uint8(render_view(model, scene, cam)[0])[..., ::-1])
+        write_image(out / "view.png", to_uint8(render_view(model, scene, cam, args.supersample)[0])[..., ::-1])
         print(f"wrote {out / 'view.png'}")
         return 0
-    pngs, gif = render_orbit(model, scene, args.out, args.frames, args.size, args.fps, progress=not args.quiet)
+    pngs, gif = render_orbit(model, scene, args.out, args.frames, args.size, args.fps, progress=not args.quiet,
+                             supersample=args.supersample)
     print(f"wrote {len(pngs)} views and {gif}")
     return 0
 
@@ -193,5 +194,7 @@ def add_parsers(sub) -> None:
     vw.add_argument("--fps", type=arg_float(0.1, 240), default=12.0)
     vw.add_argument("--eye", help="X,Y,Z: one view from here instead of the orbit")
     vw.add_argument("--target", default="0,0,0", help="X,Y,Z the --eye view looks at")
+    vw.add_argument("--supersample", type=arg_int(1, 8), default=1, metavar="S",
+                    help="anti-aliased images: S x S rays per pixel, averaged (default 1)")
     vw.add_argument("--quiet", action="store_true")
     vw.set_defaults(func=cmd_views, outputs=[("out", "dir")])

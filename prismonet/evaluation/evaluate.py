@@ -166,7 +166,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
             H, W = b.rgb.shape[-2:]
             t0 = time.perf_counter()
             pred_img.append(supersampled_image(model.sdf_fn, model.color_fn, out.latents.params, out.latents.bg_color, b.K,
-                                               b.T_world_cam, H, W, b.ground_z, model.cfg.far_depth, supersample,
+                                               b.T_world_cam, H, W, b.ground_z, supersample,
                                                model.render_settings()).numpy())
             aa_seconds += time.perf_counter() - t0
         else:

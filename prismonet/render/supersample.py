@@ -24,7 +24,7 @@ from prismonet.render.renderer import RenderSettings, SceneParams, render_object
 
 
 def supersampled_image(sdf_fn: Callable, color_fn: Callable, params: SceneParams, bg_color: torch.Tensor, K: torch.Tensor,
-                       T_world_cam: torch.Tensor, height: int, width: int, ground_z, far_depth: float, samples: int,
+                       T_world_cam: torch.Tensor, height: int, width: int, ground_z, samples: int,
                        settings: RenderSettings = RenderSettings()) -> torch.Tensor:
     """``(B, 3, H, W)``: the scene of ``params`` over the ground plane, ``samples x samples`` rays per pixel, averaged.
 
@@ -32,13 +32,14 @@ def supersampled_image(sdf_fn: Callable, color_fn: Callable, params: SceneParams
         sdf_fn, color_fn: the shape and texture fields, as ``render_objects`` takes them.
         params: the slots (``SceneParams``; inactive slots are not drawn).
         bg_color: ``(B, 3)`` the ground's colour.
-        K: ``(B, 3, 3)``; T_world_cam: ``(B, 4, 4)``; ground_z: float or ``(B,)``; far_depth: the ground's depth clip.
+        K: ``(B, 3, 3)``; T_world_cam: ``(B, 4, 4)``; ground_z: float or ``(B,)``.
         samples: rays per pixel along each side (1: the ordinary render).
+        settings: the renderer's (its ``far_depth`` also clips the ground, as ``render_latents``).
     """
     if samples < 1:
         raise ValueError(f"samples per pixel side: expected at least 1, got {samples}")
     Ks = resize_intrinsics(K, float(samples), float(samples))
     Hs, Ws = samples * height, samples * width
     obj = render_objects(sdf_fn, color_fn, params, Ks, T_world_cam, Hs, Ws, settings)
-    comp = composite(obj.depth, obj.mask, obj.color, bg_color, plane_depth(Ks, T_world_cam, Hs, Ws, ground_z, far_depth))
+    comp = composite(obj.depth, obj.mask, obj.color, bg_color, plane_depth(Ks, T_world_cam, Hs, Ws, ground_z, settings.far_depth))
     return comp.image if samples == 1 else F.avg_pool2d(comp.image, samples)

@@ -50,10 +50,19 @@ def orbit_cameras(scene: LatentScene, frames: int = 24, degrees: float = 360.0, 
 
 
 @torch.no_grad()
-def render_view(model, scene: LatentScene, camera: Camera):
-    """``(image (3, H, W), depth (H, W), instance (H, W))`` of the scene seen from ``camera``."""
+def render_view(model, scene: LatentScene, camera: Camera, supersample: int = 1):
+    """``(image (3, H, W), depth (H, W), instance (H, W))`` of the scene seen from ``camera``; with ``supersample``
+    ``S > 1`` the image is anti-aliased, ``S x S`` rays per pixel (``prismonet.render.supersample``)."""
     comp = scene.render(model, camera)[0]
-    return comp.image[0], comp.depth[0, 0], comp.instance[0]
+    image = comp.image[0]
+    if supersample > 1:
+        from prismonet.render.supersample import supersampled_image
+
+        dtype = scene.z_sh.dtype
+        image = supersampled_image(model.sdf_fn, model.color_fn, scene.params(), scene.bg_color[None], camera.K[None].to(dtype),
+                                   camera.T_world_cam[None].to(dtype), camera.height, camera.width,
+                                   torch.tensor([scene.ground_z], dtype=dtype), supersample, model.render_settings())[0]
+    return image, comp.depth[0, 0], comp.instance[0]
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:
@@ -76,15 +85,16 @@ def write_gif(frames: list[np.ndarray], path: str | Path, fps: float = 12.0) -> 
 
 
 def render_orbit(model, scene: LatentScene, out_dir: str | Path, frames: int = 24, size: int = 128,
-                 fps: float = 12.0, progress: bool = True) -> tuple[list[Path], Path]:
-    """Render an orbit into ``out_dir``: ``view_<i>.png`` per frame and ``orbit.gif``."""
+                 fps: float = 12.0, progress: bool = True, supersample: int = 1) -> tuple[list[Path], Path]:
+    """Render an orbit into ``out_dir``: ``view_<i>.png`` per frame and ``orbit.gif`` (``supersample``: as
+    ``render_view``)."""
     from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     pngs, frames_u8 = [], []
     for i, cam in enumerate(tqdm(orbit_cameras(scene, frames, size=size), desc="orbit", unit="view", disable=not progress)):
-        img = to_uint8(render_view(model, scene, cam)[0])
+        img = to_uint8(render_view(model, scene, cam, supersample)[0])
         frames_u8.append(img)
         pngs.append(out / f"view_{i:03d}.png")
         write_image(pngs[-1], img[..., ::-1])
