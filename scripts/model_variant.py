@@ -1,0 +1,52 @@
+"""A copy of a model with some of its ``model.json`` (``ModelConfig``) fields changed: inference settings tried
+without training, e.g. more samples per ray.
+
+    python3 scripts/model_variant.py MODEL OUT FIELD=JSON [FIELD=JSON ...]
+    python3 scripts/model_variant.py chairs_refiner runs/chairs_s48 render_samples=48
+
+MODEL is a shipped name or a run folder; OUT gets ``model.json`` and ``model.safetensors`` (the weights unchanged),
+which ``prismonet evaluate OUT ...`` reads.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) < 3 or any("=" not in a for a in argv[2:]):
+        print("model_variant: usage: model_variant.py MODEL OUT FIELD=JSON [FIELD=JSON ...]", file=sys.stderr)
+        return 2
+    from prismonet.assets import named_model
+    from prismonet.config import _build
+    from prismonet.model.config import ModelConfig
+
+    p = named_model(argv[0]) or Path(argv[0])
+    stem = p / "model" if p.is_dir() else p.with_suffix("")
+    if not stem.with_suffix(".json").is_file():
+        print(f"model_variant: error: {stem.with_suffix('.json')}: no such model", file=sys.stderr)
+        return 2
+    info = json.loads(stem.with_suffix(".json").read_text())
+    names = {f.name for f in dataclasses.fields(ModelConfig)}
+    for kv in argv[2:]:
+        key, value = kv.split("=", 1)
+        if key not in names:
+            print(f"model_variant: error: {key!r} is not a ModelConfig field", file=sys.stderr)
+            return 2
+        info["model"][key] = json.loads(value)
+    _build(ModelConfig, info["model"], "model.")  # checks the values as load_model does
+    out = Path(argv[1])
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "model.json").write_text(json.dumps(info, indent=1))
+    shutil.copy(stem.with_suffix(".safetensors"), out / "model.safetensors")
+    print(f"wrote {out} ({', '.join(argv[2:])})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
