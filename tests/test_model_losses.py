@@ -294,3 +294,25 @@ def test_bad_seek_and_clip_settings_are_one_clear_error(override, message):
 
     with pytest.raises(ValueError, match=message):
         load_config(TrainConfig, overrides=[override])
+
+
+def test_pose_loss_yaw_up_to_symmetry():
+    """Slot yaws 0 against true yaws 90 and 180 degrees, hand-computed: the paper's term 1 - cos(delta) gives 1 + 2;
+    with periods (0: round, pi: a box) 0 + (1 - cos(2 pi / pi * pi)) = 0; with 2 pi (none) the paper's again."""
+    p = _params([[1.0, 0.0, 0.5], [-1.0, 0.0, 0.5]])
+    gt_pos = torch.tensor([[[1.0, 0.0, 0.5], [-1.0, 0.0, 0.5]]])
+    gt_yaw = torch.tensor([[math.pi / 2, math.pi]])
+    args = (p, gt_pos, gt_yaw, torch.full((1, 2), 0.5), torch.tensor([2]))
+    assert float(pose_loss(*args)) == pytest.approx(3.0, abs=1e-5)
+    assert float(pose_loss(*args, torch.tensor([[0.0, math.pi]]))) == pytest.approx(0.0, abs=1e-5)
+    assert float(pose_loss(*args, torch.tensor([[2 * math.pi, 2 * math.pi]]))) == pytest.approx(3.0, abs=1e-5)
+    # a square box (pi / 2) turned by 90 degrees costs nothing, by 45 the most
+    assert float(pose_loss(*args, torch.tensor([[math.pi / 2, 2 * math.pi]]))) == pytest.approx(2.0, abs=1e-5)
+    gt45 = torch.tensor([[math.pi / 4, 0.0]])
+    assert float(pose_loss(p, gt_pos, gt45, torch.full((1, 2), 0.5), torch.tensor([2]), torch.tensor([[math.pi / 2, 0.0]]))) \
+        == pytest.approx(2.0, abs=1e-5)
+
+
+def test_pose_yaw_periods_are_checked():
+    with pytest.raises(ValueError, match="pose_yaw_periods: expected periods in"):
+        LossConfig(pose_yaw_periods=(0.0, 7.0))

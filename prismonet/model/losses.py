@@ -56,6 +56,10 @@ class LossConfig:
     intersection_points: int = 16
     w_outside: float = 0.0
     w_pose: float = 0.0
+    pose_yaw_periods: tuple[float, ...] | None = None
+    """L_pose's yaw term up to each shape's symmetry about z, by the training data's shape ids
+    (``prismonet.shapes.symmetry.library_yaw_periods``): ``1 - cos(2 pi / P (yaw - true yaw))`` for period ``P``, nothing
+    for 0 (a round shape: every yaw looks alike). None: the paper's ``1 - cos(yaw - true yaw)`` for every shape."""
     w_mask: float = 0.0
     mask_from_depth: bool = False
     """L_mask's target from the depth image alone: pixels in front of the known ground plane by
@@ -89,6 +93,8 @@ class LossConfig:
         for name in ("w_image", "w_depth", "w_ground", "w_shape_start", "w_shape_end", "w_intersection", "w_outside", "w_pose", "w_mask", "w_presence", "w_distill", "w_seek", "w_keep", "distill_texture"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
+        if self.pose_yaw_periods is not None and any(not 0 <= p <= 2 * math.pi for p in self.pose_yaw_periods):
+            raise ValueError(f"pose_yaw_periods: expected periods in [0, 2 pi], got {self.pose_yaw_periods}")
         if self.sh_steps <= 0 or self.blur_steps <= 0:
             raise ValueError(f"sh_steps and blur_steps must be positive, got {self.sh_steps}, {self.blur_steps}")
 
@@ -162,8 +168,10 @@ def outside_loss(params, K: torch.Tensor, T_world_cam: torch.Tensor, width: int,
     return (torch.relu(-torch.minimum(u, width - u)) + torch.relu(-torch.minimum(v, height - v))).sum(1)
 
 
-def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count) -> torch.Tensor:
-    """``(B,)`` the paper's L_pose after a Hungarian matching on position distance."""
+def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count, yaw_period: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B,)`` the paper's L_pose after a Hungarian matching on position distance. ``yaw_period (B, K)``: each true
+    object's period of symmetry about z (``LossConfig.pose_yaw_periods``); its yaw term is then ``1 - cos(2 pi / P
+    delta)``, and nothing for ``P = 0``."""
     from scipy.optimize import linear_sum_assignment
 
     B = params.position.shape[0]
@@ -174,8 +182,14 @@ def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count) -> torch.Tensor:
         cost = torch.cdist(params.position[b].detach(), gt_position[b, :n])
         rows, cols = linear_sum_assignment(cost.cpu().numpy())
         r, c = torch.as_tensor(rows, device=cost.device), torch.as_tensor(cols, device=cost.device)
+        delta = yaw[b, r] - gt_yaw[b, c]
+        if yaw_period is None:
+            turn = 1 - torch.cos(delta)
+        else:
+            P = yaw_period[b, c].to(delta.dtype)
+            turn = torch.where(P > 0, 1 - torch.cos(2 * math.pi / P.clamp_min(1e-6) * delta), torch.zeros_like(delta))
         out.append((params.position[b, r] - gt_position[b, c]).norm(dim=-1).sum()
-                   + (1 - torch.cos(yaw[b, r] - gt_yaw[b, c])).sum() + ((params.scale[b, r] - gt_scale[b, c]) ** 2).sum())
+                   + turn.sum() + ((params.scale[b, r] - gt_scale[b, c]) ** 2).sum())
     return torch.stack(out)
 
 
@@ -223,6 +237,17 @@ class LossTerms:
         return {k: float(v.detach()) for k, v in self.__dict__.items()}
 
 
+def _yaw_periods(cfg: LossConfig, batch) -> torch.Tensor | None:
+    """``(B, K)`` each true object's period of symmetry about z, from ``cfg.pose_yaw_periods`` by its shape id."""
+    if cfg.pose_yaw_periods is None:
+        return None
+    table = torch.tensor(cfg.pose_yaw_periods, dtype=batch.obj_yaw.dtype, device=batch.obj_yaw.device)
+    ids = batch.obj_shape.long()
+    if bool((ids >= len(table)).any()):
+        raise ValueError(f"pose_yaw_periods: {len(table)} periods, but the data has shape id {int(ids.max())}")
+    return table[ids.clamp_min(0)]  # padding slots (id -1) are never matched
+
+
 def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: torch.Tensor | None = None,
                    distill: tuple[dict, torch.Tensor] | None = None) -> LossTerms:
     """All losses for a model output ``out`` on a ``SceneBatch`` (``target_depth`` overrides the
@@ -240,7 +265,8 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     inter = intersection_loss(model, p, cfg.intersection_points).mean() if cfg.w_intersection > 0 else zero
     H, W = batch.rgb.shape[-2:]
     outside = outside_loss(p, batch.K, batch.T_world_cam, W, H).mean() if cfg.w_outside > 0 else zero
-    pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count).mean() if cfg.w_pose > 0 else zero
+    pose = pose_loss(p, batch.obj_position, batch.obj_yaw, batch.obj_scale, batch.obj_count,
+                     _yaw_periods(cfg, batch)).mean() if cfg.w_pose > 0 else zero
     mask = mask_loss(out, batch, cfg, step, target_depth, far) if cfg.w_mask > 0 else zero
     if cfg.w_distill > 0 and distill is not None:
         from prismonet.model.distill import DistillWeights, distill_loss
