@@ -58,7 +58,6 @@ def illumination_field(image: np.ndarray, order: int = ORDER) -> np.ndarray:
     use = (np.linalg.norm(chroma - table, axis=-1) < CHROMA_TOLERANCE).reshape(-1)
     use &= lum.reshape(-1) > 0.02  # black carries no brightness to fit
     if GRAY_BAND is not None and float((small.max(-1) - small.min(-1)).max()) <= GRAY_SPREAD:  # a greyscale photo
-
         table_lum = float(estimate_table_color(small).mean()) + 1e-3
         use &= (np.abs(np.log(lum) - np.log(table_lum)) < GRAY_BAND).reshape(-1)
     yy, xx = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")

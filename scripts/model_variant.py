@@ -40,10 +40,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         info["model"][key] = json.loads(value)
     _build(ModelConfig, info["model"], "model.")  # checks the values as load_model does
+    from prismonet.files import write_atomic
+
     out = Path(argv[1])
     out.mkdir(parents=True, exist_ok=True)
-    (out / "model.json").write_text(json.dumps(info, indent=1))
     shutil.copy(stem.with_suffix(".safetensors"), out / "model.safetensors")
+    write_atomic(out / "model.json", json.dumps(info, indent=1))  # last: a copy cut short has no model.json
     print(f"wrote {out} ({', '.join(argv[2:])})")
     return 0
 

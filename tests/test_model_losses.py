@@ -316,3 +316,15 @@ def test_pose_loss_yaw_up_to_symmetry():
 def test_pose_yaw_periods_are_checked():
     with pytest.raises(ValueError, match="pose_yaw_periods: expected periods in"):
         LossConfig(pose_yaw_periods=(0.0, 7.0))
+
+
+def test_pose_yaw_periods_must_cover_the_data():
+    from types import SimpleNamespace
+
+    from prismonet.model.losses import _yaw_periods
+
+    batch = SimpleNamespace(obj_shape=torch.tensor([[0, 2, -1]]), obj_yaw=torch.zeros(1, 3))
+    assert _yaw_periods(LossConfig(), batch) is None
+    assert _yaw_periods(LossConfig(pose_yaw_periods=(0.0, 1.0, math.pi)), batch)[0].tolist() == pytest.approx([0.0, math.pi, 0.0])
+    with pytest.raises(ValueError, match="pose_yaw_periods: 2 periods, but the data has shape id 2"):
+        _yaw_periods(LossConfig(pose_yaw_periods=(0.0, 1.0)), batch)

@@ -139,6 +139,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
 
     from prismonet.model.inference import InferenceConfig, infer
     from prismonet.render.background import plane_depth
+    from prismonet.render.supersample import supersampled_image
 
     cfg = inference or InferenceConfig()
     n = len(ds) if limit is None else min(limit, len(ds))
@@ -161,8 +162,6 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         step_inst.append(np.take_along_axis(steps_1, pi.reshape(len(b), -1), 1).reshape(pi.shape))
         gt_inst.append(gi)
         if supersample > 1:
-            from prismonet.render.supersample import supersampled_image
-
             H, W = b.rgb.shape[-2:]
             t0 = time.perf_counter()
             pred_img.append(supersampled_image(model.sdf_fn, model.color_fn, out.latents.params, out.latents.bg_color, b.K,

@@ -182,14 +182,10 @@ def pose_loss(params, gt_position, gt_yaw, gt_scale, gt_count, yaw_period: torch
         cost = torch.cdist(params.position[b].detach(), gt_position[b, :n])
         rows, cols = linear_sum_assignment(cost.cpu().numpy())
         r, c = torch.as_tensor(rows, device=cost.device), torch.as_tensor(cols, device=cost.device)
-        delta = yaw[b, r] - gt_yaw[b, c]
-        if yaw_period is None:
-            turn = 1 - torch.cos(delta)
-        else:
-            P = yaw_period[b, c].to(delta.dtype)
-            turn = torch.where(P > 0, 1 - torch.cos(2 * math.pi / P.clamp_min(1e-6) * delta), torch.zeros_like(delta))
+        # turns per full turn that leave the shape as it is: 1 (the paper's term), 2 pi / P, or 0 (round: no term)
+        k = 1.0 if yaw_period is None else (2 * math.pi / yaw_period[b, c].clamp_min(1e-6)) * (yaw_period[b, c] > 0)
         out.append((params.position[b, r] - gt_position[b, c]).norm(dim=-1).sum()
-                   + turn.sum() + ((params.scale[b, r] - gt_scale[b, c]) ** 2).sum())
+                   + (1 - torch.cos(k * (yaw[b, r] - gt_yaw[b, c]))).sum() + ((params.scale[b, r] - gt_scale[b, c]) ** 2).sum())
     return torch.stack(out)
 
 
