@@ -128,3 +128,29 @@ def test_supersampled_image_measures(results):
     for k in ("AP0.5", "AR0.5", "mAP", "allObj", "depth_RMSE", "ARI", "count_exact"):
         assert aa[k] == results[k], k
     assert aa["PSNR"] >= results["PSNR"] + MEASURED_AA_GAIN - 0.2
+
+
+def test_rotation_error_up_to_each_shapes_own_symmetry(results):
+    """``rot_err_shape``: the yaw error of the matched objects whose shape has a yaw at all (not a round sphere or
+    cylinder; a stretched one has a period of 180 degrees), each up to its own period. Counted again here from the truth: the matched objects are those of
+    ``scene_detection`` at IoU 0.5, on the same decoding."""
+    import torch
+
+    from prismonet.evaluation.evaluate import dataset_shapes, shape_periods
+    from prismonet.evaluation.metrics import scene_detection, symmetry_period
+    from prismonet.model.inference import InferenceConfig, infer
+    from prismonet.shapes.clevr_set import clevr_shapes
+
+    ds = SceneDataset(shipped_samples(), split="test")
+    specs, clevr_ids = dataset_shapes(ds)
+    assert clevr_ids and shape_periods(ds, specs, clevr_ids) == [symmetry_period(i) for i in range(len(specs))]
+    model, _ = load_model("shipped")
+    b = ds.batch(list(range(16)))
+    with torch.no_grad():
+        out = infer(model.eval(), b, InferenceConfig(), None, model.cfg.num_slots)
+    pi, gi = out.composite.instance.numpy(), b.instance.numpy()
+    shapes = [clevr_shapes()[int(b.obj_shape[j, g - 1])] for j in range(16) for _, g in scene_detection(pi[j], gi[j], 0.5)["pairs"]]
+    assert len(shapes) == results["matched_objects"]
+    round_ = [s.category in ("sphere", "cylinder") and s.half_extents[0] == s.half_extents[1] for s in shapes]
+    assert 0 < sum(round_) < len(shapes) and results["matched_not_round"] == len(shapes) - sum(round_)
+    assert 0 <= results["rot_err_shape"] <= 90
