@@ -7,12 +7,22 @@ from importlib import resources
 from pathlib import Path
 
 SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 47): the
-glimpse-refiner recipe of session 46 (below) with a refiner that also learns which slots to keep
-(``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a dropped slot
-becomes inactive and renders nothing). Stage 1 ``prismonet refiner clevr3_fc ... --glimpse 0.375 --coords --keep``,
-stage 2 ``configs/clevr3_keep.json`` (its config and logs: ``clevr3_keep_config.json``, ``clevr3_keep_log.jsonl``,
-``clevr3_keep_fit_log.jsonl``); applied twice, ``refine_passes`` 2."""
+"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 56): the keep
+recipe of session 47 (below) with its refiner fitted to 13,312 search targets instead of 8,192, made on new training
+scenes (``data clevr --objects 3 --seed 7 --split 24576,0,0``), for 6,000 steps instead of 3,000. Stage 1 ``prismonet
+refiner clevr3_fc data/clevr3_x ... --steps 6000 --glimpse 0.375 --coords --keep`` (its log:
+``clevr3_keep13k_fit_log.jsonl``), stage 2 ``configs/clevr3_keep13k.json`` (``clevr3_keep13k_config.json``,
+``clevr3_keep13k_log.jsonl``); applied twice, ``refine_passes`` 2."""
+FIT13K_MODEL = "clevr3_fit13k_model"
+"""The shipped model's stage 1 alone (session 56): ``clevr3_fc`` with the keep refiner fitted to the 13,312 targets for
+6,000 steps (its log: ``clevr3_keep13k_fit_log.jsonl``), applied twice; no stage 2. Not the default: better on PSNR
+(test 26.02 against 25.61; 26.63 with ``evaluate --supersample 3``) and mAP, worse on allObj and the count."""
+KEEP_MODEL = "clevr3_keep_model"
+"""The model shipped in sessions 47-55: the glimpse-refiner recipe of session 46 (below) with a refiner that also learns
+which slots to keep (``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a
+dropped slot becomes inactive and renders nothing). Stage 1 ``prismonet refiner clevr3_fc ... --glimpse 0.375 --coords
+--keep`` on 8,192 targets, stage 2 ``configs/clevr3_keep.json`` (its config and logs: ``clevr3_keep_config.json``,
+``clevr3_keep_log.jsonl``, ``clevr3_keep_fit_log.jsonl``); applied twice, ``refine_passes`` 2."""
 GLIMPSE_MODEL = "clevr3_glimpse_model"
 """The model shipped in session 46: ``clevr3_fc`` with the glimpse refiner, two stages (``configs/clevr3_glimpse.json``;
 its config and logs are ``clevr3_glimpse_config.json``, ``clevr3_glimpse_log.jsonl``, ``clevr3_glimpse_fit_log.jsonl``),
@@ -39,6 +49,8 @@ SHIPPED_SAMPLES = "samples/clevr3"
 
 MODELS = {
     "clevr3": SHIPPED_MODEL,
+    "clevr3_keep": KEEP_MODEL,
+    "clevr3_fit13k": FIT13K_MODEL,
     "clevr3_glimpse": GLIMPSE_MODEL,
     "clevr3_refiner": REFINER_MODEL,
     "clevr3_fc": FC_MODEL,
