@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps([round(p, 6) for p in periods]))
     names = {0.0: "round", round(math.pi / 2, 6): "pi/2", round(math.pi, 6): "pi", round(2 * math.pi, 6): "none"}
     print(f"{sum(p == 0 for p in periods)} of {len(periods)} round; " + ", ".join(f"{i}: {names[round(p, 6)]}" for i, p in enumerate(periods)),
-          file=__import__("sys").stderr)
+          file=sys.stderr)
     return 0
 
 

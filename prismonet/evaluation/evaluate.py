@@ -203,11 +203,11 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
                 scale_ratio.append(float(p.scale[j, pk - 1] / b.obj_scale[j, gk - 1]))
                 gt_yaw = float(b.obj_yaw[j, gk - 1])
                 rot_err.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, None))
-                period = symmetry_period(int(b.obj_shape[j, gk - 1])) if clevr_ids else pseudo
-                rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, period))
                 sid = int(b.obj_shape[j, gk - 1])
-                if periods is not None and 0 <= sid < len(periods) and periods[sid] != 0:  # a round shape has no yaw
-                    rot_shape.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, periods[sid]))
+                own = periods[sid] if periods is not None and 0 <= sid < len(periods) else None
+                rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, own if clevr_ids else pseudo))
+                if own:  # None: not known; 0: a round shape, which has no yaw
+                    rot_shape.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, own))
     cat = np.concatenate
     results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record(), "supersample": supersample}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
