@@ -4,7 +4,7 @@ the pipeline, each building its own sub-parser:
 ========================  =====================================================================
 ``cli.data``              ``data clevr | sheet | verify | to-folder | subset``
 ``cli.shapes``            ``shapes pretrain | eval | mesh`` (the DeepSDF prior)
-``cli.train``             ``train``, ``distill``, ``refiner``
+``cli.train``             ``train``, ``distill``, ``refiner``, ``color-step``
 ``cli.evaluate``          ``demo``, ``evaluate``, ``reconstruct``
 ``cli.scene``             ``export``, ``edit``, ``views``
 ``cli.calibrate``         ``calibrate intrinsics | ground``

@@ -1,6 +1,7 @@
 """``prismonet train`` (the scene model from RGB-D), ``prismonet distill`` (self-distillation
-targets: the test-time steps run on training scenes, ``prismonet.model.distill``) and ``prismonet
-refiner`` (a learnt refinement pass trained on such targets, ``prismonet.model.refiner_fit``)."""
+targets: the test-time steps run on training scenes, ``prismonet.model.distill``), ``prismonet
+refiner`` (a learnt refinement pass trained on such targets, ``prismonet.model.refiner_fit``) and ``prismonet
+color-step`` (a learnt colour step trained on training images, ``prismonet.model.color_step_fit``)."""
 
 from __future__ import annotations
 
@@ -71,6 +72,38 @@ def cmd_refiner(args) -> int:
     return 0
 
 
+def cmd_color_step(args) -> int:
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import check_compatible
+    from prismonet.model.color_step_fit import ColorStepFitConfig, fit_color_step, with_color_step
+    from prismonet.model.io import load_model
+
+    cfg = ColorStepFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed)
+    if args.count is not None and args.count <= 0:
+        raise ValueError(f"--count must be positive, got {args.count}")
+    base, info = load_model(args.checkpoint)
+    if base.cfg.color_step:
+        raise ValueError(f"{args.checkpoint}: already has a colour step; start from the model without it")
+    model = with_color_step(base, _ints(args.channels, "--channels"), _ints(args.fc, "--fc"))
+    ds = SceneDataset(args.data, split=args.split)
+    check_compatible(base, info, ds)
+    s = fit_color_step(model, ds, len(ds) if args.count is None else args.count, args.out, cfg,
+                       info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
+    print(json.dumps(s))
+    print(f"run folder: {args.out}  (model.safetensors + model.json with the colour step, checkpoint.safetensors, log.jsonl)")
+    return 0
+
+
+def _ints(text: str, name: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or min(values) <= 0:
+        raise ValueError(f"{name}: expected positive integers separated by commas, got {text!r}")
+    return values
+
+
 def _made_by_refined(meta: dict, base_digest: str) -> bool:
     """Whether targets were made by a model with a refinement pass on top of the encoder of digest ``base_digest``
     (a later round of self-distillation: the refined model's search gives the targets, its encoder is fitted again)."""
@@ -130,3 +163,19 @@ def add_parsers(sub) -> None:
                    help="the refiner also learns which slots to keep (those the search's fit shows); it drops the others")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])
+
+    c = sub.add_parser("color-step", help="train a learnt colour step on training images, the rest of the model frozen (resumable)")
+    c.add_argument("checkpoint", help="the trained model: run folder, .safetensors, or a shipped name")
+    c.add_argument("data", help="a dataset of training scenes (only the images are read)")
+    c.add_argument("--out", required=True, help="run folder; rerun the same command to resume")
+    c.add_argument("--split", default="train")
+    c.add_argument("--count", type=int, default=None, help="the first N scenes of the split (default: all)")
+    c.add_argument("--steps", type=int, default=3000)
+    c.add_argument("--batch", type=int, default=32, help="scenes per step")
+    c.add_argument("--lr", type=float, default=1e-3)
+    c.add_argument("--holdout", type=int, default=256, help="the last N scenes, held out (their PSNR is logged)")
+    c.add_argument("--channels", default="32,32,64,64", help="conv blocks of the colour step")
+    c.add_argument("--fc", default="256", help="its fully connected layers")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--quiet", action="store_true")
+    c.set_defaults(func=cmd_color_step, outputs=[("out", "dir")])

@@ -80,6 +80,13 @@ class ModelConfig:
     refiner_keep: bool = False
     """The refiner also says whether each slot is worth keeping (a logit, trained on whether the search's fit shows
     the slot); a slot it drops becomes inactive and renders nothing, so slivers and hidden slots cost nothing."""
+    color_step: bool = False
+    """A learnt colour step at inference (beyond the paper; ``prismonet.model.color_step``): after the refinement
+    passes, one more look at every slot (through the refiner's view: ``refiner_glimpse``, ``refiner_coords``) moves
+    its texture latent, the test-time colour fit in one pass; the geometry is not touched. Training ignores it."""
+    color_step_channels: tuple[int, ...] = (32, 32, 64, 64)
+    """Conv blocks of the colour step (as ``channels``)."""
+    color_step_fc: tuple[int, ...] = (256,)
     anchor: bool = False
     """Anchored slots (beyond the paper; ``prismonet.model.unexplained``): each encoder step is pointed at the
     deepest pixel of the largest part of the image that the slots so far leave unexplained in colour, sees that
@@ -138,6 +145,10 @@ class ModelConfig:
             raise ValueError(f"refiner_glimpse must be in [0, 1], got {self.refiner_glimpse}")
         if self.refine_passes and self.image_size % (2 ** len(self.refiner_channels)) != 0:
             raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.refiner_channels)} (refiner_channels)")
+        if self.color_step and self.image_size % (2 ** len(self.color_step_channels)) != 0:
+            raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.color_step_channels)} (color_step_channels)")
+        if self.color_step and self.presence:
+            raise ValueError("color_step cannot be used with presence (a slot's colour there is its layer's, not its own)")
         lo, hi = self.scale_range
         if not 0 < lo < hi:
             raise ValueError(f"scale_range must satisfy 0 < min < max, got {self.scale_range}")

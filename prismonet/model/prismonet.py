@@ -13,14 +13,16 @@ import torch
 from torch import nn
 
 from prismonet.geometry.transforms import invert_similarity, transform_points
+from prismonet.model.color_step import ColorStep
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
-from prismonet.model.refiner import SlotRefiner, apply_correction, refiner_inputs, split_keep
+from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, apply_correction, on_active_slots, refiner_inputs, split_keep
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.model.unexplained import AnchorRule, find_anchors
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
+from prismonet.render.renderer import ObjectRender, shade_objects
 from prismonet.render.background import plane_depth
 from prismonet.render.composite import Composite, presence_composite
 from prismonet.shapes.prior import ShapePrior, load_prior
@@ -58,6 +60,8 @@ class ModelOutput:
     when slots were selected among more encoder steps (``prismonet.model.select``)."""
     keep_logit: torch.Tensor | None = None
     """``(B, N)`` the last refinement pass's keep logits (``cfg.refiner_keep``), else ``None``."""
+    render: ObjectRender | None = None
+    """The last render of all slots together (its hits), when there was one: a recolouring needs no second ray cast."""
 
     def encoder_steps(self) -> torch.Tensor:
         """``(B, N)`` the 0-based encoder step of each slot."""
@@ -88,6 +92,10 @@ class PriSMONet(nn.Module):
         if cfg.refine_passes:
             self.refiner = SlotRefiner(self.sh_dim, cfg.tex_dim, cfg.image_size, cfg.refiner_channels, cfg.refiner_fc,
                                        cfg.refiner_coords, cfg.refiner_shape, cfg.refiner_keep)
+        if cfg.color_step:
+            self.color_step = ColorStep(IN_CHANNELS + (COORD_CHANNELS if cfg.refiner_coords else 0),
+                                        self.sh_dim + cfg.tex_dim + 6, cfg.tex_dim, cfg.image_size,
+                                        cfg.color_step_channels, cfg.color_step_fc)
         self.register_buffer("pos_offset", torch.tensor(cfg.position_offset), persistent=False)
         self.register_buffer("pos_scale", torch.tensor(cfg.position_scale), persistent=False)
 
@@ -177,7 +185,8 @@ class PriSMONet(nn.Module):
 
     # -- the model ----------------------------------------------------------------------
     def forward(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor,
-                num_slots: int | None = None, stop: BoundStop | None = None, refine: bool = True) -> ModelOutput:
+                num_slots: int | None = None, stop: BoundStop | None = None, refine: bool = True,
+                recolor: bool = True) -> ModelOutput:
         """Decompose images ``(B, 3, H, W)`` (cameras ``K (B, 3, 3)``, ``T_world_cam (B, 4, 4)``,
         ground heights ``(B,)``) into ``num_slots`` objects (default ``cfg.num_slots``).
 
@@ -187,7 +196,8 @@ class PriSMONet(nn.Module):
         stopped. ``None``: all steps run.
 
         With ``cfg.refine_passes`` the refiner then corrects every slot that many times (``refine``
-        ``False``: the encoder's slots, unrefined).
+        ``False``: the encoder's slots, unrefined). With ``cfg.color_step``, at inference, the colour step then moves
+        every slot's texture latent (``recolor`` ``False``, or ``refine`` ``False``: it does not).
 
         An anchored model (``cfg.anchor``, ``prismonet.model.unexplained``) points each step at the deepest pixel
         of the largest part of the image that the slots so far leave unexplained in colour, and sees that part;
@@ -292,6 +302,8 @@ class PriSMONet(nn.Module):
         out = self.refine_slots(out, image, K, T_world_cam, ground_z)
         if self.cfg.reanchor_steps and not self.training:
             out = self.reanchor(out, image, K, T_world_cam, ground_z)
+        if self.cfg.color_step and recolor and not self.training:
+            out = self.recolor(out, image, K, T_world_cam)
         return out
 
     def refine_slots(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
@@ -323,7 +335,7 @@ class PriSMONet(nn.Module):
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps,
-                           None if keep_logit is None else keep_logit.reshape(new.scale.shape))
+                           None if keep_logit is None else keep_logit.reshape(new.scale.shape), obj)
 
     @torch.no_grad()
     def reanchor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
@@ -372,21 +384,34 @@ class PriSMONet(nn.Module):
         obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, self.render_settings())
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         out = ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                          obj.soft_mask, out.presence, out.slot_steps, out.keep_logit)
+                          obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
         for _ in range(self.cfg.refine_passes):
             out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
                                     keep_above=self.cfg.reanchor_keep_logit)
         return out
 
+    def recolor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
+        """``out`` with every active slot's texture latent moved by the colour step (``cfg.color_step``,
+        ``prismonet.model.color_step``) and recoloured at the same hits: depth, masks and instances are unchanged. Uses
+        ``out.render`` (the last render's hits) when it has one, else casts the rays once more."""
+        p = out.latents.params
+        B, N = p.scale.shape
+        H, W = image.shape[-2:]
+        obj = out.render
+        if obj is None:
+            obj = render_objects(self.sdf_fn, None, p, K, T_world_cam, H, W, self.render_settings())
+        views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, p, K, T_world_cam)
+        new = replace(p, z_tex=p.z_tex + on_active_slots(self.color_step, views, latents, p.active).reshape(B, N, -1))
+        color = shade_objects(self.color_fn, new, obj)
+        comp = composite(obj.depth, obj.mask, color, out.latents.bg_color, out.bg_depth)
+        return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, color, out.bg_depth,
+                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
+
     def _refiner_delta(self, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
         """The refiner's raw output for every slot; the network runs on the active slots only (an inactive slot's row
         is zero: ``apply_correction`` leaves it as it is, and a zero keep logit keeps it inactive), so a scene pays for
         the slots it uses."""
-        if active is None or bool(active.all()):
-            return self.refiner(views, latents)
-        rows = active.reshape(-1).nonzero().squeeze(1)
-        delta = views.new_zeros(views.shape[0], self.refiner.head[-1].out_features)
-        return delta.index_copy(0, rows, self.refiner(views[rows], latents[rows])) if len(rows) else delta
+        return on_active_slots(self.refiner, views, latents, active)
 
     def refiner_inputs(self, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
                        params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -65,6 +65,16 @@ class SlotRefiner(nn.Module):
         return self.head(torch.cat([h, latents], 1))
 
 
+def on_active_slots(net: nn.Module, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
+    """``net(views, latents)`` for every slot row, the network run on the active slots only (``active (B, N)``; an
+    inactive slot's row is zero), so a scene pays for the slots it uses. ``net``'s last layer is ``net.head[-1]``."""
+    if active is None or bool(active.all()):
+        return net(views, latents)
+    rows = active.reshape(-1).nonzero().squeeze(1)
+    out = views.new_zeros(views.shape[0], net.head[-1].out_features)
+    return out.index_copy(0, rows, net(views[rows], latents[rows])) if len(rows) else out
+
+
 def slot_views(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor) -> torch.Tensor:
     """``(B*N, 8, H, W)``: per slot, the image, the image minus the composition, the slot's visible
     silhouette (its id in ``instance (B, H, W)``) and its full silhouette (``obj_mask (B, N, H, W)``)."""
