@@ -91,3 +91,26 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
         return load_file(str(path)), meta
     except Exception as e:  # safetensors raises its own error types for damaged files
         raise ValueError(f"{path}: not a readable safetensors checkpoint ({e})") from None
+
+
+def save_part(path: str | Path, prefix: str, module: torch.nn.Module, opt: torch.optim.Optimizer, step: int, record: dict) -> None:
+    """Atomically checkpoint one trained part of a model (``module``'s weights under ``prefix``, e.g. ``"refiner."``),
+    its optimiser and the step, with the run's ``record`` (what a resume must match)."""
+    t, d = optimizer_tensors(opt)
+    save_checkpoint(path, {**{f"{prefix}{k}": v for k, v in module.state_dict().items()}, **t},
+                    {"step": step, "record": record, "optimizer": d})
+
+
+def resume_part(path: str | Path, prefix: str, module: torch.nn.Module, opt: torch.optim.Optimizer, record: dict,
+                error: type[Exception] = ValueError) -> int:
+    """The step a ``save_part`` checkpoint at ``path`` reached, with ``module`` and ``opt`` restored from it; 0 when there is
+    none. A checkpoint of a run with another ``record`` raises ``error`` (one line: use a new folder)."""
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    tensors, meta = load_checkpoint(path)
+    if meta.get("record") != json.loads(json.dumps(record)):
+        raise error(f"{path}: a run with other settings; use a new folder")
+    module.load_state_dict({k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)})
+    load_optimizer(opt, tensors, meta["optimizer"])
+    return int(meta["step"])

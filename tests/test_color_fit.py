@@ -20,7 +20,14 @@ def test_color_error_by_hand():
 
 
 def test_geometry_is_held_and_no_scene_gets_worse(shipped):
-    model, b, out = shipped
+    """On the shipped model without its learnt colour step (which does part of this fit in one pass: with it, the fit
+    takes the error down by 4 % more instead of 9 %)."""
+    from prismonet.model.color_step_fit import without_color_step
+
+    model, b, _ = shipped
+    model = without_color_step(model).eval()
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
     fitted = fit_colors(model, out, b, ColorFitConfig(steps=50))
     p, q = out.latents.params, fitted.latents.params
     for name in ("z_sh", "position", "cos_sin", "scale"):

@@ -6,6 +6,34 @@ import pytest
 import torch
 
 
+@pytest.fixture(scope="module")
+def plain(shipped):
+    """The shipped model without its colour step, the four scenes, and its output on them."""
+    from prismonet.model.color_step_fit import without_color_step
+
+    model, b, _ = shipped
+    model = without_color_step(model).eval()
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    return model, b, out
+
+
+def test_without_color_step_is_the_model_before_it(shipped, plain):
+    """The shipped model's colour step moves its texture latents and colours only; without it, the same weights give the
+    same geometry and the colours the step started from."""
+    model, b, out = shipped
+    base, _, before = plain
+    assert model.cfg.color_step and not base.cfg.color_step and not hasattr(base, "color_step")
+    for name in ("z_sh", "position", "cos_sin", "scale"):
+        assert torch.equal(getattr(out.latents.params, name), getattr(before.latents.params, name))
+    assert torch.equal(out.composite.instance, before.composite.instance)
+    assert not torch.equal(out.latents.params.z_tex, before.latents.params.z_tex)
+    with torch.no_grad():
+        again = model(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False)
+    assert torch.equal(again.latents.params.z_tex, before.latents.params.z_tex)
+    assert torch.equal(again.composite.image, before.composite.image)
+
+
 def _with_step(model, seed: int = 0, scale: float = 0.0):
     """``model`` with a colour step whose last layer is random at ``scale`` (0: a fresh, identity step)."""
     from prismonet.model.color_step_fit import with_color_step
@@ -20,8 +48,8 @@ def _with_step(model, seed: int = 0, scale: float = 0.0):
     return new
 
 
-def test_fresh_color_step_is_the_identity(shipped):
-    model, b, out = shipped
+def test_fresh_color_step_is_the_identity(plain):
+    model, b, out = plain
     with torch.no_grad():
         got = _with_step(model)(b.rgb, b.K, b.T_world_cam, b.ground_z)
     assert torch.equal(got.latents.params.z_tex, out.latents.params.z_tex)
@@ -30,10 +58,10 @@ def test_fresh_color_step_is_the_identity(shipped):
     assert torch.equal(got.composite.depth, out.composite.depth)
 
 
-def test_color_step_moves_colours_only(shipped):
+def test_color_step_moves_colours_only(plain):
     """A non-zero step changes the texture latents of the active slots and the colours of the object pixels; the shapes,
     poses, depth, masks, instances and the ground's pixels stay exactly as they were."""
-    model, b, out = shipped
+    model, b, out = plain
     stepped = _with_step(model, scale=0.05)
     with torch.no_grad():
         got = stepped(b.rgb, b.K, b.T_world_cam, b.ground_z)
@@ -52,11 +80,11 @@ def test_color_step_moves_colours_only(shipped):
     assert float((got.composite.image - plain.composite.image).abs()[~ground].mean()) > 1e-3
 
 
-def test_recolor_without_the_last_render_casts_the_same_rays(shipped):
+def test_recolor_without_the_last_render_casts_the_same_rays(plain):
     """``recolor`` on an output that holds no render (it casts the rays again) gives the image it gives with one."""
     from dataclasses import replace
 
-    model, b, _ = shipped
+    model, b, _ = plain
     stepped = _with_step(model, scale=0.05)
     with torch.no_grad():
         plain = stepped(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False)
@@ -67,14 +95,14 @@ def test_recolor_without_the_last_render_casts_the_same_rays(shipped):
     assert torch.equal(a.composite.instance, c.composite.instance)
 
 
-def test_geometry_cache_recolours_to_the_models_image(shipped):
+def test_geometry_cache_recolours_to_the_models_image(plain):
     """The cached winning surface points, recoloured with the model's own texture latents, give the model's composite
     (float16 points: within 2e-3 per channel) and its background where no slot wins."""
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.color_step_fit import geometry_cache, recolored, scene_mse
 
-    model, b, out = shipped
+    model, b, out = plain
     stepped = _with_step(model, scale=0.05)  # the cache must not see the step
     ds = SceneDataset(shipped_samples(), split="test")
     cache = geometry_cache(stepped, ds, 4, batch_size=3, progress=False)
@@ -89,7 +117,7 @@ def test_geometry_cache_recolours_to_the_models_image(shipped):
     assert torch.allclose(mse, ((out.composite.image - truth) ** 2).flatten(1).mean(1), atol=1e-6)
 
 
-def test_fit_color_step_raises_psnr_on_its_scenes_and_resumes(shipped, tmp_path):
+def test_fit_color_step_raises_psnr_on_its_scenes_and_resumes(plain, tmp_path):
     """A colour step fitted to eight scenes makes their image closer to the input than the model's own colours (the
     loss can only fall that way), the saved model loads with it, and a rerun with more steps resumes."""
     from prismonet.assets import shipped_samples
@@ -97,7 +125,7 @@ def test_fit_color_step_raises_psnr_on_its_scenes_and_resumes(shipped, tmp_path)
     from prismonet.model.color_step_fit import ColorStepFitConfig, fit_color_step, geometry_cache, held_out_psnr, with_color_step
     from prismonet.model.io import load_model
 
-    model = shipped[0]
+    model = plain[0]
     ds = SceneDataset(shipped_samples(), split="test")
     cfg = ColorStepFitConfig(steps=40, batch_size=8, lr=3e-3, holdout=4, checkpoint_every=20)
     torch.manual_seed(0)
@@ -118,14 +146,14 @@ def test_fit_color_step_raises_psnr_on_its_scenes_and_resumes(shipped, tmp_path)
                                                                    torch.arange(8, 12), step=False), abs=1e-6)
 
 
-def test_color_step_bad_input(shipped, tmp_path, capsys):
+def test_color_step_bad_input(plain, tmp_path, capsys):
     from prismonet.assets import shipped_samples
     from prismonet.cli import main
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.color_step_fit import ColorStepError, ColorStepFitConfig, fit_color_step
     from prismonet.model.config import ModelConfig
 
-    model = shipped[0]
+    model = plain[0]
     ds = SceneDataset(shipped_samples(), split="test")
     with pytest.raises(ColorStepError, match="no colour step"):
         fit_color_step(model, ds, 12, tmp_path / "a", ColorStepFitConfig(steps=1, holdout=4), progress=False)
@@ -133,6 +161,8 @@ def test_color_step_bad_input(shipped, tmp_path, capsys):
         ColorStepFitConfig(steps=0)
     with pytest.raises(ValueError, match="presence"):
         ModelConfig(color_step=True, presence=True)
-    for extra, words in ((["--channels", "16,0"], "--channels"), (["--count", "0"], "--count")):
+    for extra, words in ((["--channels", "16,0"], "--channels"), (["--count", "0"], "--count"), ([], "already has a colour step")):
         assert main(["color-step", "shipped", str(shipped_samples()), "--split", "test", "--out", str(tmp_path / "c"), *extra]) == 2
-        assert words in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "c").exists()  # a command that fails leaves no folder behind

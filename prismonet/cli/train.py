@@ -81,10 +81,12 @@ def cmd_color_step(args) -> int:
     cfg = ColorStepFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed)
     if args.count is not None and args.count <= 0:
         raise ValueError(f"--count must be positive, got {args.count}")
+    channels, fc = _ints(args.channels, "--channels"), _ints(args.fc, "--fc")
     base, info = load_model(args.checkpoint)
     if base.cfg.color_step:
-        raise ValueError(f"{args.checkpoint}: already has a colour step; start from the model without it")
-    model = with_color_step(base, _ints(args.channels, "--channels"), _ints(args.fc, "--fc"))
+        raise ValueError(f"{args.checkpoint}: already has a colour step; start from the model without it "
+                         "(color_step_fit.without_color_step)")
+    model = with_color_step(base, channels, fc)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
     s = fit_color_step(model, ds, len(ds) if args.count is None else args.count, args.out, cfg,
@@ -163,7 +165,10 @@ def add_parsers(sub) -> None:
                    help="the refiner also learns which slots to keep (those the search's fit shows); it drops the others")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])
+    _add_color_step_parser(sub)
 
+
+def _add_color_step_parser(sub) -> None:
     c = sub.add_parser("color-step", help="train a learnt colour step on training images, the rest of the model frozen (resumable)")
     c.add_argument("checkpoint", help="the trained model: run folder, .safetensors, or a shipped name")
     c.add_argument("data", help="a dataset of training scenes (only the images are read)")

@@ -39,17 +39,30 @@ class ColorStepFitConfig:
     batch_size: int = 32
     """Scenes per step."""
     lr: float = 1e-3
-    """Adam; a cosine from it down to 1 % at ``steps``."""
-    weight_decay: float = 1e-4
+    """Adam; a linear warm-up from 4 % of it over the first ``warmup`` of the steps, then a cosine down to 1 % at
+    ``steps``."""
+    warmup: float = 0.05
+    weight_decay: float = 0.0
     holdout: int = 256
     """The last cached scenes, held out for the logged PSNR."""
     seed: int = 0
     checkpoint_every: int = 250
 
     def __post_init__(self) -> None:
-        if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0 or self.weight_decay < 0:
+        if (self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0
+                or self.weight_decay < 0 or not 0 <= self.warmup < 1):
             raise ValueError("colour step fit: steps, batch_size, lr and checkpoint_every must be positive, holdout and weight_decay "
-                             f">= 0, got {self.steps}, {self.batch_size}, {self.lr}, {self.checkpoint_every}, {self.holdout}, {self.weight_decay}")
+                             f">= 0 and warmup in [0, 1), got {self.steps}, {self.batch_size}, {self.lr}, {self.checkpoint_every}, "
+                             f"{self.holdout}, {self.weight_decay}, {self.warmup}")
+
+
+def learning_rate(cfg: ColorStepFitConfig, step: int) -> float:
+    """The step size at ``step``: ``warmup`` of the run rising linearly from 4 % to ``lr``, then a cosine to 1 %."""
+    ramp = cfg.warmup * cfg.steps
+    if step < ramp:
+        return cfg.lr * (0.04 + 0.96 * step / ramp)
+    t = (step - ramp) / max(cfg.steps - ramp, 1e-9)
+    return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
 def with_color_step(model, channels: tuple[int, ...] | None = None, fc: tuple[int, ...] | None = None):
@@ -66,6 +79,16 @@ def with_color_step(model, channels: tuple[int, ...] | None = None, fc: tuple[in
     own = {k: v for k, v in new.state_dict().items() if k.startswith("color_step.")}
     new.load_state_dict({**{k: v for k, v in model.state_dict().items() if not k.startswith("color_step.")}, **own})
     return new
+
+
+def without_color_step(model):
+    """A copy of a scene model without its colour step (``color_step`` off; the other weights shared as they are): the
+    model as it was before the step was fitted, bit for bit."""
+    from prismonet.model.prismonet import PriSMONet
+
+    new = PriSMONet(replace(model.cfg, color_step=False), prior=model.prior)
+    new.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("color_step.")})
+    return new.train(model.training)
 
 
 @torch.no_grad()
@@ -159,7 +182,7 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     model's record. Returns a summary."""
     from tqdm import tqdm
 
-    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.checkpoint import resume_part, save_part
     from prismonet.model.io import save_model
 
     if not model.cfg.color_step:
@@ -178,14 +201,7 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     for q in model.color_step.parameters():
         q.requires_grad_(True)
     opt = torch.optim.AdamW(model.color_step.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    step = 0
-    if ckpt.is_file():
-        tensors, meta = load_checkpoint(ckpt)
-        if meta.get("record") != json.loads(json.dumps(record)):
-            raise ColorStepError(f"{ckpt}: a run with other settings; use a new folder")
-        model.color_step.load_state_dict({k[len("color_step."):]: v for k, v in tensors.items() if k.startswith("color_step.")})
-        load_optimizer(opt, tensors, meta["optimizer"])
-        step = meta["step"]
+    step = resume_part(ckpt, "color_step.", model.color_step, opt, record, ColorStepError)
     cache = geometry_cache(model, ds, count, progress=progress)
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
@@ -196,9 +212,7 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
             f.write(json.dumps({"step": 0, "held_out_psnr": held_out_psnr(model, cache, ds, held, step=False)}) + "\n")
 
     def save(at: int) -> None:
-        t, d = optimizer_tensors(opt)
-        save_checkpoint(ckpt, {**{f"color_step.{k}": v for k, v in model.color_step.state_dict().items()}, **t},
-                        {"step": at, "record": record, "optimizer": d})
+        save_part(ckpt, "color_step.", model.color_step, opt, at, record)
 
     model.color_step.train()
     t0, losses = time.perf_counter(), []
@@ -206,7 +220,7 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     try:
         while step < cfg.steps:
             for g in opt.param_groups:
-                g["lr"] = cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
+                g["lr"] = learning_rate(cfg, step)
             gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             idx = torch.randint(0, train_n, (cfg.batch_size,), generator=gen)
             mse = scene_mse(cache, idx, recolored(model, cache, idx, _step_latents(model, cache, ds, idx)))

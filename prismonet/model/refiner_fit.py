@@ -173,7 +173,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     Returns a summary."""
     from tqdm import tqdm
 
-    from prismonet.checkpoint import load_checkpoint, load_optimizer, optimizer_tensors, save_checkpoint
+    from prismonet.checkpoint import resume_part, save_part
     from prismonet.model.io import save_model
 
     if not model.cfg.refine_passes:
@@ -198,14 +198,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     ckpt = out / "checkpoint.safetensors"
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    step = 0
-    if ckpt.is_file():
-        tensors, meta = load_checkpoint(ckpt)
-        if meta.get("record") != json.loads(json.dumps(record)):
-            raise DistillError(f"{ckpt}: a run with other settings; use a new folder")
-        model.refiner.load_state_dict({k[len("refiner."):]: v for k, v in tensors.items() if k.startswith("refiner.")})
-        load_optimizer(opt, tensors, meta["optimizer"])
-        step = meta["step"]
+    step = resume_part(ckpt, "refiner.", model.refiner, opt, record, DistillError)
     if cache is None:
         cache = encoder_cache(model, ds, count, progress=progress)
     elif len(cache["scale"]) < count:
@@ -219,9 +212,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
             f.write(json.dumps({"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}) + "\n")
 
     def save(at: int) -> None:
-        t, d = optimizer_tensors(opt)
-        save_checkpoint(ckpt, {**{f"refiner.{k}": v for k, v in model.refiner.state_dict().items()}, **t},
-                        {"step": at, "record": record, "optimizer": d})
+        save_part(ckpt, "refiner.", model.refiner, opt, at, record)
 
     model.refiner.train()
     t0, losses = time.perf_counter(), []
