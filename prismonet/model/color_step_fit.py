@@ -16,7 +16,6 @@ steps; rerunning the same command resumes. The result is a whole scene model, ``
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, replace
@@ -180,9 +179,8 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     """Train ``model``'s colour step (``model.cfg.color_step``; see ``with_color_step``) on scenes ``0 .. count-1`` of
     ``ds`` (a training split: only their images are read), then save the whole model in ``out_dir``. ``info``: the base
     model's record. Returns a summary."""
-    from tqdm import tqdm
-
     from prismonet.checkpoint import resume_part, save_part
+    from prismonet.model.part_fit import append_row, batch_indices, fit_steps, read_rows
     from prismonet.model.io import save_model
 
     if not model.cfg.color_step:
@@ -208,45 +206,24 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     log = out / "log.jsonl"
     if step == 0:
         log.write_text("")
-        with log.open("a") as f:  # the model's own colours: where the step starts
-            f.write(json.dumps({"step": 0, "held_out_psnr": held_out_psnr(model, cache, ds, held, step=False)}) + "\n")
+        append_row(log, {"step": 0, "held_out_psnr": held_out_psnr(model, cache, ds, held, step=False)})  # the model's own colours
 
-    def save(at: int) -> None:
-        save_part(ckpt, "color_step.", model.color_step, opt, at, record)
+    def loss_at(at: int) -> torch.Tensor:
+        idx = batch_indices(cfg.seed, at, train_n, cfg.batch_size)
+        return scene_mse(cache, idx, recolored(model, cache, idx, _step_latents(model, cache, ds, idx))).clamp_min(1e-8).log().mean()
+
+    def report(at: int, train: float) -> str:
+        row = {"step": at, "train_psnr": -10 / math.log(10) * train, "held_out_psnr": held_out_psnr(model, cache, ds, held)}
+        append_row(log, row)
+        return f"held_out={row['held_out_psnr']:.3f} dB"
 
     model.color_step.train()
-    t0, losses = time.perf_counter(), []
-    bar = tqdm(total=cfg.steps, initial=step, desc="colour step", unit="step", disable=not progress)
-    try:
-        while step < cfg.steps:
-            for g in opt.param_groups:
-                g["lr"] = learning_rate(cfg, step)
-            gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-            idx = torch.randint(0, train_n, (cfg.batch_size,), generator=gen)
-            mse = scene_mse(cache, idx, recolored(model, cache, idx, _step_latents(model, cache, ds, idx)))
-            loss = mse.clamp_min(1e-8).log().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
-            step += 1
-            bar.update(1)
-            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                row = {"step": step, "train_psnr": -10 / math.log(10) * sum(losses) / len(losses),
-                       "held_out_psnr": held_out_psnr(model, cache, ds, held)}
-                losses = []
-                with log.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
-                bar.set_postfix(held_out=f"{row['held_out_psnr']:.3f} dB")
-                save(step)
-    except KeyboardInterrupt:
-        save(step)
-        raise
-    finally:
-        bar.close()
+    t0 = time.perf_counter()
+    step = fit_steps(step, cfg.steps, opt, lambda at: learning_rate(cfg, at), loss_at, cfg.checkpoint_every, report,
+                     lambda at: save_part(ckpt, "color_step.", model.color_step, opt, at, record), "colour step", progress)
     model.eval()
     base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
     save_model(model, out / "model", {**base, "color_step_fit": record})
-    rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    rows = read_rows(log)
     return {"steps": step, "held_out_psnr_start": rows[0]["held_out_psnr"], "held_out_psnr_end": rows[-1]["held_out_psnr"],
             "seconds": time.perf_counter() - t0}

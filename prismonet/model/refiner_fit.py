@@ -18,7 +18,6 @@ Resumable: ``RUN/checkpoint.safetensors`` (refiner, Adam, step) is written atomi
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, replace
@@ -171,9 +170,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     ``out_dir``. ``info``: the base model's record (its training config is kept). ``cache``: ``encoder_cache``'s
     output for these scenes, when several refiners are fitted on one encoder (else it is computed here).
     Returns a summary."""
-    from tqdm import tqdm
-
     from prismonet.checkpoint import resume_part, save_part
+    from prismonet.model.part_fit import append_row, batch_indices, fit_steps, read_rows
     from prismonet.model.io import save_model
 
     if not model.cfg.refine_passes:
@@ -208,44 +206,24 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     log = out / "log.jsonl"
     if step == 0:
         log.write_text("")
-        with log.open("a") as f:  # the loss of no correction: where the refiner starts
-            f.write(json.dumps({"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}) + "\n")
+        append_row(log, {"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)})  # no correction
 
-    def save(at: int) -> None:
-        save_part(ckpt, "refiner.", model.refiner, opt, at, record)
+    def loss_at(at: int) -> torch.Tensor:
+        return _loss(model, cache, ds, targets, batch_indices(cfg.seed, at, train_n, cfg.batch_size), weights, cfg.color)
+
+    def report(at: int, train: float) -> str:
+        row = {"step": at, "train": train, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}
+        append_row(log, row)
+        return f"held_out={row['held_out']:.4f}"
 
     model.refiner.train()
-    t0, losses = time.perf_counter(), []
-    bar = tqdm(total=cfg.steps, initial=step, desc="refiner", unit="step", disable=not progress)
-    try:
-        while step < cfg.steps:
-            for g in opt.param_groups:
-                g["lr"] = cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
-            gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-            idx = torch.randint(0, train_n, (cfg.batch_size,), generator=gen)
-            loss = _loss(model, cache, ds, targets, idx, weights, cfg.color)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
-            step += 1
-            bar.update(1)
-            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-                row = {"step": step, "train": sum(losses) / len(losses),
-                       "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}
-                losses = []
-                with log.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
-                bar.set_postfix(held_out=f"{row['held_out']:.4f}")
-                save(step)
-    except KeyboardInterrupt:
-        save(step)
-        raise
-    finally:
-        bar.close()
+    t0 = time.perf_counter()
+    step = fit_steps(step, cfg.steps, opt, lambda at: cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * at / cfg.steps))),
+                     loss_at, cfg.checkpoint_every, report, lambda at: save_part(ckpt, "refiner.", model.refiner, opt, at, record),
+                     "refiner", progress)
     model.eval()
     base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
     save_model(model, out / "model", {**base, "refiner_fit": record})
-    rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    rows = read_rows(log)
     return {"steps": step, "held_out_start": rows[0]["held_out"], "held_out_end": rows[-1]["held_out"],
             "seconds": time.perf_counter() - t0}
