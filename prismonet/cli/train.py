@@ -9,7 +9,7 @@ import json
 import os
 from pathlib import Path
 
-from prismonet.cli.common import add_inference_args, inference_config
+from prismonet.cli.common import add_inference_args, inference_config, int_list
 
 
 def cmd_train(args) -> int:
@@ -81,7 +81,7 @@ def cmd_color_step(args) -> int:
     cfg = ColorStepFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed)
     if args.count is not None and args.count <= 0:
         raise ValueError(f"--count must be positive, got {args.count}")
-    channels, fc = _ints(args.channels, "--channels"), _ints(args.fc, "--fc")
+    channels, fc = tuple(int_list(args.channels, "--channels", 1)), tuple(int_list(args.fc, "--fc", 1))
     base, info = load_model(args.checkpoint)
     if base.cfg.color_step:
         raise ValueError(f"{args.checkpoint}: already has a colour step; start from the model without it "
@@ -94,16 +94,6 @@ def cmd_color_step(args) -> int:
     print(json.dumps(s))
     print(f"run folder: {args.out}  (model.safetensors + model.json with the colour step, checkpoint.safetensors, log.jsonl)")
     return 0
-
-
-def _ints(text: str, name: str) -> tuple[int, ...]:
-    try:
-        values = tuple(int(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if not values or min(values) <= 0:
-        raise ValueError(f"{name}: expected positive integers separated by commas, got {text!r}")
-    return values
 
 
 def _made_by_refined(meta: dict, base_digest: str) -> bool:

@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
+from prismonet.model.io import rebuilt
 from prismonet.model.refiner import on_active_slots
 
 
@@ -67,27 +68,18 @@ def learning_rate(cfg: ColorStepFitConfig, step: int) -> float:
 def with_color_step(model, channels: tuple[int, ...] | None = None, fc: tuple[int, ...] | None = None):
     """A copy of a trained scene model with a fresh (identity) colour step; every other weight is kept. A colour step
     the model already has is replaced."""
-    from prismonet.model.prismonet import PriSMONet
-
     fields = {"color_step": True}
     if channels is not None:
         fields["color_step_channels"] = tuple(channels)
     if fc is not None:
         fields["color_step_fc"] = tuple(fc)
-    new = PriSMONet(replace(model.cfg, **fields), prior=model.prior)
-    own = {k: v for k, v in new.state_dict().items() if k.startswith("color_step.")}
-    new.load_state_dict({**{k: v for k, v in model.state_dict().items() if not k.startswith("color_step.")}, **own})
-    return new
+    return rebuilt(model, "color_step.", **fields)
 
 
 def without_color_step(model):
     """A copy of a scene model without its colour step (``color_step`` off; the other weights shared as they are): the
     model as it was before the step was fitted, bit for bit."""
-    from prismonet.model.prismonet import PriSMONet
-
-    new = PriSMONet(replace(model.cfg, color_step=False), prior=model.prior)
-    new.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("color_step.")})
-    return new.train(model.training)
+    return rebuilt(model, "color_step.", color_step=False).train(model.training)
 
 
 @torch.no_grad()
@@ -99,7 +91,7 @@ def geometry_cache(model, ds, count: int, batch_size: int = 64, progress: bool =
     from tqdm import tqdm
 
     from prismonet.render.composite import zbuffer
-    from prismonet.render.renderer import render_objects
+    from prismonet.render.renderer import render_objects, winning_hits
 
     model.eval()
     keys = ("comp", "instance", "obj_mask", "z_sh", "z_tex", "position", "cos_sin", "scale", "active", "bg_color", "winner", "x_obj", "rgb")
@@ -114,8 +106,7 @@ def geometry_cache(model, ds, count: int, batch_size: int = 64, progress: bool =
         if obj is None:
             obj = render_objects(model.sdf_fn, None, p, b.K, b.T_world_cam, H, W, model.render_settings())
         winner, hit = zbuffer(obj.depth, obj.mask)
-        bi, k = obj.hit_slot // N, obj.hit_slot % N
-        won = hit.reshape(B, -1)[bi, obj.hit_pix] & (winner.reshape(B, -1)[bi, obj.hit_pix] == k)
+        bi, won = winning_hits(obj, winner, hit)
         x_obj = torch.zeros(B * H * W, 3, dtype=obj.hit_x_obj.dtype)
         x_obj[bi[won] * H * W + obj.hit_pix[won]] = obj.hit_x_obj[won]
         rows["comp"].append(out.composite.image.half())

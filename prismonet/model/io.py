@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
@@ -128,6 +128,18 @@ def _head_rows(model) -> dict[str, range]:
     if model.cfg.presence:
         rows["presence"] = range(model.out_dim - 1, model.out_dim)
     return rows
+
+
+def rebuilt(model, fresh: str, **fields):
+    """A copy of a trained scene model with ``fields`` of its ``ModelConfig`` changed: the part whose weights start with
+    ``fresh`` (``"refiner."``, ``"color_step."``) starts afresh where the new config has one (or is gone), every other
+    weight is the model's. Adds, replaces or removes one learnt part of a model."""
+    from prismonet.model.prismonet import PriSMONet
+
+    new = PriSMONet(replace(model.cfg, **fields), prior=model.prior)
+    own = {k: v for k, v in new.state_dict().items() if k.startswith(fresh)}
+    new.load_state_dict({**{k: v for k, v in model.state_dict().items() if not k.startswith(fresh)}, **own})
+    return new
 
 
 def transfer_weights(model, source) -> list[str]:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -66,15 +66,12 @@ def with_refiner(model, passes: int = 1, **fields):
     encoder, background encoder and texture field keep their weights. ``fields``: other ``ModelConfig``
     refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``, ``refiner_shape``, ``refiner_keep``); a
     refiner the model already has is replaced."""
-    from prismonet.model.prismonet import PriSMONet
+    from prismonet.model.io import rebuilt
 
     bad = [k for k in fields if not k.startswith("refiner_")]
     if bad:
         raise ValueError(f"with_refiner: only refiner settings may change, got {bad}")
-    new = PriSMONet(replace(model.cfg, refine_passes=passes, **fields), prior=model.prior)
-    own = {k: v for k, v in new.state_dict().items() if k.startswith("refiner.")}
-    new.load_state_dict({**{k: v for k, v in model.state_dict().items() if not k.startswith("refiner.")}, **own})
-    return new
+    return rebuilt(model, "refiner.", refine_passes=passes, **fields)
 
 
 @torch.no_grad()

@@ -227,11 +227,17 @@ def render_objects(
     return out
 
 
+def winning_hits(obj: ObjectRender, winner: torch.Tensor, hit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(n,)`` each hit of ``obj``'s scene, and whether it wins the z-buffer (``zbuffer``'s ``winner``, ``hit``)."""
+    B, Kslots = obj.depth.shape[:2]
+    b, k = obj.hit_slot // Kslots, obj.hit_slot % Kslots
+    return b, hit.reshape(B, -1)[b, obj.hit_pix] & (winner.reshape(B, -1)[b, obj.hit_pix] == k)
+
+
 def shade_winners(color_fn: ColorFn, params: SceneParams, obj: ObjectRender, bg_color: torch.Tensor, winner, hit) -> torch.Tensor:
     """Image ``(B, 3, H, W)``: the texture field evaluated only at the hits that win the z-buffer."""
     B, Kslots, H, W = obj.depth.shape
-    b, k = obj.hit_slot // Kslots, obj.hit_slot % Kslots
-    win = hit.reshape(B, -1)[b, obj.hit_pix] & (winner.reshape(B, -1)[b, obj.hit_pix] == k)
+    b, win = winning_hits(obj, winner, hit)
     rgb = color_fn(params.z_tex.reshape(B * Kslots, -1)[obj.hit_slot[win]], obj.hit_x_obj[win])
     image = bg_color[:, None, :].expand(B, H * W, 3).reshape(-1, 3)
     image = image.index_put((b[win] * H * W + obj.hit_pix[win],), rgb)
