@@ -12,7 +12,13 @@ table gives medians over every timed step. Variants (cumulative, each adds one c
 - ``previous``: the code before this benchmark's changes (``argmin`` z-buffer, unfused MLP);
 - ``zbuffer``: ``min(dim=1).indices`` in the z-buffer;
 - ``inplace``: + the in-place no-grad MLP in the root search (``prismonet.shapes.decoder``);
-- ``blur``: + the loss's Gaussian blur truncated at 6 sigma (7 taps instead of 17 at sigma 0.5).
+- ``blur``: + the loss's Gaussian blur truncated at 6 sigma (7 taps instead of 17 at sigma 0.5);
+- ``blurmm``: + that blur as two matrix products instead of kornia's convolutions, and L_I / L_D blurring
+  the difference once instead of each image (session 58; ``prismonet.model.blur``);
+- ``fused``: + Adam as one fused kernel (``fused=True``) instead of its per-tensor loop (session 58).
+
+The process keeps freed memory for reuse as every ``prismonet`` command does (``prismonet.allocator``;
+``PRISMONET_MALLOC=default`` turns it off).
 """
 
 from __future__ import annotations
@@ -55,9 +61,9 @@ class ShippedStep:
         self.state = {k: v.clone() for k, v in self.model.state_dict().items()}
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, fused: bool = True) -> None:
         self.model.load_state_dict(self.state)
-        self.opt = torch.optim.Adam(self.params, lr=1e-6)
+        self.opt = torch.optim.Adam(self.params, lr=1e-6, fused=fused)
 
     def __call__(self, seed: int) -> float:
         from prismonet.model.losses import compute_losses
@@ -77,7 +83,7 @@ class ShippedStep:
         return time.perf_counter() - t0
 
 
-VARIANTS = ("previous", "zbuffer", "inplace", "blur")
+VARIANTS = ("previous", "zbuffer", "inplace", "blur", "blurmm", "fused")
 _ORIGINAL: dict = {}
 
 
@@ -96,6 +102,40 @@ def configure(name: str) -> None:
     decoder.INPLACE_NOGRAD = rank >= 2
     _ORIGINAL.setdefault("blur_kernel_size", losses.blur_kernel_size)
     losses.blur_kernel_size = _ORIGINAL["blur_kernel_size"] if rank >= 3 else (lambda sigma: losses.BLUR_KERNEL)
+    _ORIGINAL.setdefault("compute_losses", losses.compute_losses)
+    _ORIGINAL.setdefault("blur", losses.blur)
+    if rank >= 4:
+        losses.blur, losses.compute_losses = _ORIGINAL["blur"], _ORIGINAL["compute_losses"]
+    else:
+        losses.blur, losses.compute_losses = _kornia_blur, _two_blur_losses
+
+
+def _kornia_blur(x, cfg, step):
+    """The losses' blur as it was: kornia's separable convolutions."""
+    import kornia
+
+    from prismonet.model import losses
+
+    if not cfg.blur:
+        return x
+    s = losses.blur_sigma(cfg, step)
+    k = losses.blur_kernel_size(s)
+    return kornia.filters.gaussian_blur2d(x, (k, k), (s, s), border_type="replicate")
+
+
+def _two_blur_losses(model, out, batch, cfg, step, target_depth=None, distill=None):
+    """The losses as they were: L_I and L_D blur each image, then subtract (the other terms as now)."""
+    from dataclasses import replace
+
+    from prismonet.model import losses
+
+    terms = _ORIGINAL["compute_losses"](model, out, batch, replace(cfg, use_image=False, use_depth=False), step,
+                                        target_depth, distill)
+    depth_gt = batch.depth if target_depth is None else target_depth
+    image = ((losses.blur(out.composite.image, cfg, step) - losses.blur(batch.rgb, cfg, step)) ** 2).sum(1).mean()
+    rendered = out.composite.depth.clamp(max=model.cfg.far_depth) if cfg.far_clip else out.composite.depth
+    depth = (losses.blur(rendered, cfg, step) - losses.blur(depth_gt, cfg, step)).abs().mean()
+    return replace(terms, image=image, depth=depth, total=terms.total + cfg.w_image * image + cfg.w_depth * depth)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -112,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_step: error: variants must be among {VARIANTS} and counts positive, got {args.variants!r}", file=sys.stderr)
         return 2
 
+    from prismonet.allocator import keep_freed_memory
+
+    keep_freed_memory()  # as every prismonet command does
     torch.set_num_threads(args.threads)
     step = ShippedStep(args.data)
 
@@ -119,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in range(args.rounds + 1):  # round 0 warms up
         for n in names:
             configure(n)
-            step.reset()
+            step.reset(fused=VARIANTS.index(n) >= 5)
             for i in range(args.steps):
                 t = step(1000 * r + i)
                 if r > 0:

@@ -20,20 +20,6 @@ def scenes():
     return shipped_samples()
 
 
-@pytest.fixture
-def host_kornia(monkeypatch):
-    """Kornia makes its host-side checks on the default device; keep them on the host under ``meta``."""
-    import kornia
-
-    blur = kornia.filters.gaussian_blur2d
-
-    def on_host(*a, **k):
-        with torch.device("cpu"):
-            return blur(*a, **k)
-
-    monkeypatch.setattr(kornia.filters, "gaussian_blur2d", on_host)
-
-
 VARIANTS = {
     "clevr": {},
     "refiner": {"refine_passes": 1, "refiner_glimpse": 0.375, "refiner_coords": True, "refiner_shape": True,
@@ -44,7 +30,7 @@ VARIANTS = {
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
-def test_forward_and_backward_make_no_tensor_off_the_inputs_device(scenes, host_kornia, variant):
+def test_forward_and_backward_make_no_tensor_off_the_inputs_device(scenes, variant):
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.config import ModelConfig
     from prismonet.model.losses import LossConfig, compute_losses

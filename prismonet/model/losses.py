@@ -3,8 +3,8 @@
 L_total = l_I L_I + l_D L_D + l_gr L_gr + l_sh(t) L_sh  [+ l_int L_int + l_p L_p + l_pose L_pose]
 
 - L_I: MSE of the Gaussian-blurred images; L_D: L1 of the blurred depths. The blur's sigma falls
-  linearly from 16/3 to 1/2 over ``blur_steps``. kornia needs odd kernels: 17 stands for the
-  paper's 16.
+  linearly from 16/3 to 1/2 over ``blur_steps``. The blur (``prismonet.model.blur``) has odd
+  kernels: 17 taps stand for the paper's 16.
 - L_gr: sum_i max(0, -(z_i - ground)) + max(0, -phi_i(z'_i)), z'_i the object's centre dropped
   onto the ground; phi_i in world units.
 - L_sh: sum_i |z_sh,i|^2, weight falling linearly from 0.025 to 0.0025 over ``sh_steps``.
@@ -23,13 +23,14 @@ from dataclasses import dataclass
 
 import torch
 
+from prismonet.model.blur import gaussian_blur
 from prismonet.model.foreground import at_far_clip, depth_foreground
 
 EPS_BCE = 1e-6
 """Predicted mask probabilities are clamped to [EPS_BCE, 1 - EPS_BCE] before the logarithms."""
 
 BLUR_KERNEL = 17
-"""Odd stand-in for the paper's kernel size 16 (kornia's Gaussian blur needs odd sizes)."""
+"""Odd stand-in for the paper's kernel size 16 (a centred Gaussian kernel has an odd size)."""
 
 
 @dataclass(frozen=True)
@@ -119,13 +120,12 @@ def blur_kernel_size(sigma: float) -> int:
 
 
 def blur(x: torch.Tensor, cfg: LossConfig, step: int) -> torch.Tensor:
+    """``x (..., H, W)`` under the schedule's Gaussian blur at ``step`` (replicated borders; the
+    identity with ``cfg.blur`` off)."""
     if not cfg.blur:
         return x
-    import kornia
-
     s = blur_sigma(cfg, step)
-    k = blur_kernel_size(s)
-    return kornia.filters.gaussian_blur2d(x, (k, k), (s, s), border_type="replicate")
+    return gaussian_blur(x, s, blur_kernel_size(s))
 
 
 def ground_loss(model, params, ground_z: torch.Tensor) -> torch.Tensor:
@@ -252,10 +252,11 @@ def compute_losses(model, out, batch, cfg: LossConfig, step: int, target_depth: 
     p = out.latents.params
     zero = torch.zeros((), dtype=out.composite.image.dtype, device=out.composite.image.device)
     depth_gt = batch.depth if target_depth is None else target_depth
-    image = ((blur(out.composite.image, cfg, step) - blur(batch.rgb, cfg, step)) ** 2).sum(1).mean() if cfg.use_image else zero
+    # the blur is linear: blur(a) - blur(b) = blur(a - b), one blur instead of two
+    image = (blur(out.composite.image - batch.rgb, cfg, step) ** 2).sum(1).mean() if cfg.use_image else zero
     far = model.cfg.far_depth
     rendered = out.composite.depth.clamp(max=far) if cfg.far_clip else out.composite.depth
-    depth = (blur(rendered, cfg, step) - blur(depth_gt, cfg, step)).abs().mean() if cfg.use_depth else zero
+    depth = blur(rendered - depth_gt, cfg, step).abs().mean() if cfg.use_depth else zero
     ground = ground_loss(model, p, batch.ground_z).mean() if cfg.use_ground else zero
     shape = (p.z_sh**2).sum((1, 2)).mean() if cfg.use_shape else zero
     inter = intersection_loss(model, p, cfg.intersection_points).mean() if cfg.w_intersection > 0 else zero
