@@ -161,8 +161,9 @@ def test_rotation_error_up_to_each_shapes_own_symmetry(results):
 
 
 def test_the_colour_step_model_loads_and_its_step_lifts_the_image_only(results):
-    """``clevr3_color`` (session 57): on the 16 scenes AP0.5 1.000 and PSNR 26.00; with its colour step off (the same
-    geometry) every detection and depth measure is the same, and PSNR is 25.43."""
+    """``clevr3_color`` (session 57; its colour step refitted at batch 24 in session 58): on the 16 scenes AP0.5 1.000
+    and PSNR 25.98; with its colour step off (the same geometry) every detection and depth measure is the same, and
+    PSNR is 25.43."""
     import copy
     from dataclasses import replace
 
@@ -173,10 +174,10 @@ def test_the_colour_step_model_loads_and_its_step_lifts_the_image_only(results):
     off.cfg = replace(off.cfg, color_step=False)
     ds = SceneDataset(shipped_samples(), split="test")
     on, plain = (evaluate_model(m, ds, batch_size=16, progress=False) for m in (model, off))
-    assert on["AP0.5"] >= 1.0 - AP_MARGIN and on["PSNR"] >= 26.00 - PSNR_MARGIN
+    assert on["AP0.5"] >= 1.0 - AP_MARGIN and on["PSNR"] >= 25.98 - PSNR_MARGIN
     for k in ("AP0.5", "AR0.5", "mAP", "allObj", "depth_RMSE", "ARI", "count_exact"):
         assert on[k] == plain[k], k
-    assert on["PSNR"] > plain["PSNR"] + 0.4  # measured: +0.57 dB
+    assert on["PSNR"] > plain["PSNR"] + 0.4  # measured: +0.55 dB
 
 
 def test_the_stage_one_model_loads_and_finds_its_objects(results):
