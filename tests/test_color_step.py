@@ -95,6 +95,39 @@ def test_recolor_without_the_last_render_casts_the_same_rays(plain):
     assert torch.equal(a.composite.instance, c.composite.instance)
 
 
+def test_two_passes_are_the_step_run_twice(plain):
+    """``color_step_passes`` 2 is the one-pass step applied to its own output: the second pass sees the image the first
+    made. The fit's latents (from the geometry cache) follow the model's to float16 rounding of the cached points."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.color_step_fit import _step_latents, geometry_cache
+
+    import copy
+    from dataclasses import replace
+
+    model, b, _ = plain
+    one = _with_step(model, scale=0.05)
+    two = copy.deepcopy(one)
+    two.cfg = replace(two.cfg, color_step_passes=2)  # the same weights
+    with torch.no_grad():
+        base = one(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False)
+        once = one.recolor(base, b.rgb, b.K, b.T_world_cam)
+        twice = one.recolor(once, b.rgb, b.K, b.T_world_cam)
+        got = two(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    assert torch.allclose(got.latents.params.z_tex, twice.latents.params.z_tex, atol=1e-6)
+    assert torch.allclose(got.composite.image, twice.composite.image, atol=1e-6)
+    assert not torch.allclose(twice.latents.params.z_tex, once.latents.params.z_tex, atol=1e-3)
+    ds = SceneDataset(shipped_samples(), split="test")
+    cache = geometry_cache(two, ds, 4, progress=False)
+    with torch.no_grad():
+        z = _step_latents(two, cache, ds, torch.arange(4))
+    assert torch.allclose(z, got.latents.params.z_tex, atol=5e-3)
+    with pytest.raises(ValueError, match="color_step_passes"):
+        from prismonet.model.config import ModelConfig
+
+        ModelConfig(color_step=True, color_step_passes=0)
+
+
 def test_geometry_cache_recolours_to_the_models_image(plain):
     """The cached winning surface points, recoloured with the model's own texture latents, give the model's composite
     (float16 points: within 2e-3 per channel) and its background where no slot wins."""
@@ -161,8 +194,24 @@ def test_color_step_bad_input(plain, tmp_path, capsys):
         ColorStepFitConfig(steps=0)
     with pytest.raises(ValueError, match="presence"):
         ModelConfig(color_step=True, presence=True)
-    for extra, words in ((["--channels", "16,0"], "--channels"), (["--count", "0"], "--count"), ([], "already has a colour step")):
+    for extra, words in ((["--channels", "16,0"], "--channels"), (["--count", "0"], "--count"), (["--passes", "0"], "--passes"), ([], "already has a colour step")):
         assert main(["color-step", "shipped", str(shipped_samples()), "--split", "test", "--out", str(tmp_path / "c"), *extra]) == 2
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "c").exists()  # a command that fails leaves no folder behind
+
+
+@pytest.mark.parametrize("name", ["cars_keep", "tableware_keep", "clevr1to8_keep", "tabletop_keep"])
+def test_the_other_refiner_models_ship_with_their_colour_steps(name):
+    """Session 58: every shipped model with a refiner carries a colour step fitted on 8,192 of its own training images,
+    with its log beside it; without the step it is the model that shipped before."""
+    from prismonet.assets import asset_path
+    from prismonet.model.color_step_fit import without_color_step
+    from prismonet.model.io import load_model
+
+    model, info = load_model(name)
+    assert model.cfg.color_step and model.cfg.refine_passes >= 1 and info["color_step_fit"]["scenes"] == 8192
+    assert asset_path(f"{name}_color_log.jsonl").is_file()
+    rows = [json.loads(line) for line in asset_path(f"{name}_color_log.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == 2000 and rows[-1]["held_out_psnr"] > rows[0]["held_out_psnr"] + 0.3
+    assert not without_color_step(model).cfg.color_step

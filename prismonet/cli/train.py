@@ -81,12 +81,14 @@ def cmd_color_step(args) -> int:
     cfg = ColorStepFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed)
     if args.count is not None and args.count <= 0:
         raise ValueError(f"--count must be positive, got {args.count}")
+    if args.passes < 1:
+        raise ValueError(f"--passes must be at least 1, got {args.passes}")
     channels, fc = tuple(int_list(args.channels, "--channels", 1)), tuple(int_list(args.fc, "--fc", 1))
     base, info = load_model(args.checkpoint)
     if base.cfg.color_step:
         raise ValueError(f"{args.checkpoint}: already has a colour step; start from the model without it "
                          "(color_step_fit.without_color_step)")
-    model = with_color_step(base, channels, fc)
+    model = with_color_step(base, channels, fc, args.passes)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
     s = fit_color_step(model, ds, len(ds) if args.count is None else args.count, args.out, cfg,
@@ -171,6 +173,7 @@ def _add_color_step_parser(sub) -> None:
     c.add_argument("--holdout", type=int, default=256, help="the last N scenes, held out (their PSNR is logged)")
     c.add_argument("--channels", default="32,32,64,64", help="conv blocks of the colour step")
     c.add_argument("--fc", default="256", help="its fully connected layers")
+    c.add_argument("--passes", type=int, default=1, help="looks per slot, each at the image the last one made")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_color_step, outputs=[("out", "dir")])

@@ -65,10 +65,13 @@ def learning_rate(cfg: ColorStepFitConfig, step: int) -> float:
     return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-def with_color_step(model, channels: tuple[int, ...] | None = None, fc: tuple[int, ...] | None = None):
-    """A copy of a trained scene model with a fresh (identity) colour step; every other weight is kept. A colour step
-    the model already has is replaced."""
+def with_color_step(model, channels: tuple[int, ...] | None = None, fc: tuple[int, ...] | None = None,
+                    passes: int | None = None):
+    """A copy of a trained scene model with a fresh (identity) colour step of ``passes`` passes; every other weight is
+    kept. A colour step the model already has is replaced."""
     fields = {"color_step": True}
+    if passes is not None:
+        fields["color_step_passes"] = int(passes)
     if channels is not None:
         fields["color_step_channels"] = tuple(channels)
     if fc is not None:
@@ -141,15 +144,25 @@ def scene_mse(cache: dict[str, torch.Tensor], idx: torch.Tensor, image: torch.Te
 
 
 def _step_latents(model, cache, ds, idx: torch.Tensor) -> torch.Tensor:
-    """``(B, N, D)`` the cached texture latents of scenes ``idx`` moved by the colour step."""
+    """``(B, N, D)`` the cached texture latents of scenes ``idx`` moved by the colour step, each of its
+    ``color_step_passes`` passes seeing the image the pass before it made (``PriSMONet.recolor``)."""
+    from dataclasses import replace
+
     from prismonet.render import SceneParams
 
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
     b = ds.batch(idx.tolist())
-    views, latents = model.refiner_inputs(b.rgb, cache["comp"][idx].float(), cache["instance"][idx].long(),
-                                          cache["obj_mask"][idx], params, b.K, b.T_world_cam)
     B, N = params.scale.shape
-    return params.z_tex + on_active_slots(model.color_step, views, latents, cache["active"][idx]).reshape(B, N, -1)
+    H, W = b.rgb.shape[-2:]
+    comp = cache["comp"][idx].float()
+    for i in range(model.cfg.color_step_passes):
+        if i > 0:
+            comp = recolored(model, cache, idx, params.z_tex).transpose(1, 2).reshape(B, 3, H, W)
+        views, latents = model.refiner_inputs(b.rgb, comp, cache["instance"][idx].long(), cache["obj_mask"][idx], params,
+                                              b.K, b.T_world_cam)
+        step = on_active_slots(model.color_step, views, latents, cache["active"][idx]).reshape(B, N, -1)
+        params = replace(params, z_tex=params.z_tex + step)
+    return params.z_tex
 
 
 def held_out_psnr(model, cache, ds, idx: torch.Tensor, batch: int = 128, step: bool = True) -> float:
@@ -183,7 +196,8 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     out.mkdir(parents=True, exist_ok=True)
     fit = {k: v for k, v in asdict(cfg).items() if k != "steps"}  # ``steps`` may change when a run resumes
     record = {"fit": fit, "scenes": count, "data": str(getattr(ds, "path", "")),
-              "channels": list(model.cfg.color_step_channels), "fc": list(model.cfg.color_step_fc)}
+              "channels": list(model.cfg.color_step_channels), "fc": list(model.cfg.color_step_fc),
+              "passes": model.cfg.color_step_passes}
     ckpt = out / "checkpoint.safetensors"
     for q in model.parameters():
         q.requires_grad_(False)

@@ -87,6 +87,10 @@ class ModelConfig:
     color_step_channels: tuple[int, ...] = (32, 32, 64, 64)
     """Conv blocks of the colour step (as ``channels``)."""
     color_step_fc: tuple[int, ...] = (256,)
+    """Its fully connected layers."""
+    color_step_passes: int = 1
+    """How many times the colour step looks and moves the texture latents, each time at the image the last one made
+    (the same weights; a step fitted with N passes is meant to be run with N)."""
     anchor: bool = False
     """Anchored slots (beyond the paper; ``prismonet.model.unexplained``): each encoder step is pointed at the
     deepest pixel of the largest part of the image that the slots so far leave unexplained in colour, sees that
@@ -147,6 +151,8 @@ class ModelConfig:
             raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.refiner_channels)} (refiner_channels)")
         if self.color_step and self.image_size % (2 ** len(self.color_step_channels)) != 0:
             raise ValueError(f"image_size {self.image_size} must be divisible by 2^{len(self.color_step_channels)} (color_step_channels)")
+        if self.color_step_passes < 1:
+            raise ValueError(f"color_step_passes must be at least 1, got {self.color_step_passes}")
         if self.color_step and self.presence:
             raise ValueError("color_step cannot be used with presence (a slot's colour there is its layer's, not its own)")
         lo, hi = self.scale_range

@@ -400,10 +400,12 @@ class PriSMONet(nn.Module):
         obj = out.render
         if obj is None:
             obj = render_objects(self.sdf_fn, None, p, K, T_world_cam, H, W, self.render_settings())
-        views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, p, K, T_world_cam)
-        new = replace(p, z_tex=p.z_tex + on_active_slots(self.color_step, views, latents, p.active).reshape(B, N, -1))
-        color = shade_objects(self.color_fn, new, obj)
-        comp = composite(obj.depth, obj.mask, color, out.latents.bg_color, out.bg_depth)
+        new, comp = p, out.composite
+        for _ in range(self.cfg.color_step_passes):  # each pass sees the image the one before it made
+            views, latents = self.refiner_inputs(image, comp.image, comp.instance, out.obj_mask, new, K, T_world_cam)
+            new = replace(new, z_tex=new.z_tex + on_active_slots(self.color_step, views, latents, p.active).reshape(B, N, -1))
+            color = shade_objects(self.color_fn, new, obj)
+            comp = composite(obj.depth, obj.mask, color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
 
