@@ -5,7 +5,7 @@ A separable Gaussian blur with replicated borders is linear in each image axis, 
 taps folded onto the edge pixel). On 64x64 images this is the same function as
 ``kornia.filters.gaussian_blur2d(x, (k, k), (s, s), border_type="replicate")`` to float rounding,
 and several times cheaper on CPU, backward included: oneDNN's convolution is slow on 1- and
-3-channel maps (BENCHMARKS.md, "The losses' blur as matrix products").
+3-channel maps (BENCHMARKS.md, "Session 58: the losses' Gaussian blur as two matrix products").
 
 Example:
     >>> x = torch.zeros(1, 1, 5, 5); x[..., 2, 2] = 1
@@ -21,29 +21,9 @@ import functools
 import torch
 
 
-@functools.lru_cache(maxsize=16)
-def _blur_matrix(n: int, sigma: float, taps: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    r, host = taps // 2, torch.device("cpu")  # built on the host whatever the default device, then moved
-    offsets = torch.arange(-r, r + 1, dtype=torch.float64, device=host)
-    w = torch.exp(-(offsets**2) / (2 * sigma**2))
-    w = w / w.sum()
-    rows = torch.arange(n, device=host)[:, None].expand(n, taps)
-    cols = (rows + torch.arange(-r, r + 1, device=host)).clamp(0, n - 1)  # replicate: taps past an edge land on it
-    m = torch.zeros(n, n, dtype=torch.float64, device=host).index_put_((rows, cols), w.expand(n, taps), accumulate=True)
-    return m.to(dtype=dtype, device=device)
-
-
-def blur_matrix(n: int, sigma: float, taps: int, dtype: torch.dtype = torch.float32,
-                device: torch.device | str = "cpu") -> torch.Tensor:
-    """``(n, n)``: row ``i`` holds the ``taps`` normalised Gaussian weights of output pixel ``i``, with
-    replicated borders. Cached per arguments; do not modify the result in place."""
-    if n <= 0 or taps <= 0 or taps % 2 == 0 or not sigma > 0:
-        raise ValueError(f"blur: size and taps must be positive, taps odd and sigma > 0, got {n}, {taps}, {sigma}")
-    return _blur_matrix(int(n), float(sigma), int(taps), dtype, torch.device(device))
-
-
 def blur_matrices(n: int, sigma: torch.Tensor, taps: int) -> torch.Tensor:
-    """``(B, n, n)``: ``blur_matrix`` for each of ``sigma (B,)`` (not cached), on ``sigma``'s device and dtype."""
+    """``(B, n, n)``: for each of ``sigma (B,)``, row ``i`` holds the ``taps`` normalised Gaussian weights of output
+    pixel ``i``, with replicated borders (taps past an edge land on the edge pixel); on ``sigma``'s device and dtype."""
     if n <= 0 or taps <= 0 or taps % 2 == 0 or not bool((sigma > 0).all()):
         raise ValueError(f"blur: size and taps must be positive, taps odd and every sigma > 0, got {n}, {taps}, {sigma}")
     r, dev = taps // 2, sigma.device
@@ -53,6 +33,21 @@ def blur_matrices(n: int, sigma: torch.Tensor, taps: int) -> torch.Tensor:
     cols = (torch.arange(n, device=dev)[:, None] + torch.arange(-r, r + 1, device=dev)).clamp(0, n - 1)  # (n, taps)
     one_hot = torch.nn.functional.one_hot(cols, n).to(sigma.dtype)  # (n, taps, n): where each tap lands
     return torch.einsum("bt,itj->bij", w, one_hot)
+
+
+@functools.lru_cache(maxsize=16)
+def _blur_matrix(n: int, sigma: float, taps: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    # built in float64 on the host whatever the default device, then moved
+    host = torch.tensor([sigma], dtype=torch.float64, device=torch.device("cpu"))
+    return blur_matrices(n, host, taps)[0].to(dtype=dtype, device=device)
+
+
+def blur_matrix(n: int, sigma: float, taps: int, dtype: torch.dtype = torch.float32,
+                device: torch.device | str = "cpu") -> torch.Tensor:
+    """``(n, n)``: ``blur_matrices`` for one ``sigma``. Cached per arguments; do not modify the result in place."""
+    if not sigma > 0:  # (NaN too) before the cache sees it
+        raise ValueError(f"blur: size and taps must be positive, taps odd and sigma > 0, got {n}, {taps}, {sigma}")
+    return _blur_matrix(int(n), float(sigma), int(taps), dtype, torch.device(device))
 
 
 def gaussian_blur(x: torch.Tensor, sigma: float | torch.Tensor, taps: int) -> torch.Tensor:

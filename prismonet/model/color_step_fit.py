@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -146,8 +146,6 @@ def scene_mse(cache: dict[str, torch.Tensor], idx: torch.Tensor, image: torch.Te
 def _step_latents(model, cache, ds, idx: torch.Tensor) -> torch.Tensor:
     """``(B, N, D)`` the cached texture latents of scenes ``idx`` moved by the colour step, each of its
     ``color_step_passes`` passes seeing the image the pass before it made (``PriSMONet.recolor``)."""
-    from dataclasses import replace
-
     from prismonet.render import SceneParams
 
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
