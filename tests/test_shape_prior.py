@@ -9,7 +9,7 @@ from prismonet.shapes.clevr_set import shape_mesh
 from prismonet.shapes.decoder import LatentSizeError, SDFDecoder, SDFDecoderConfig
 from prismonet.shapes.mesh import EmptyMeshError, extract_mesh
 from prismonet.shapes.metrics import chamfer_l1, grid_points, volumetric_iou
-from prismonet.shapes.pretrain import PretrainConfig, ShapeSet, pretrain
+from prismonet.shapes.pretrain import PretrainConfig, PriorInitError, ShapeSet, pretrain
 from prismonet.shapes.prior import ShapePrior, load_prior
 from prismonet.shapes.sdf_samples import SamplingConfig
 
@@ -129,6 +129,32 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     # a different config refuses to resume into the same folder
     with pytest.raises(ValueError, match="another config"):
         pretrain(PretrainConfig(**{**cfg.__dict__, "epochs": 5}), tmp_path / "b", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+
+
+def test_pretraining_can_start_from_a_prior_and_checks_that_it_fits(tmp_path):
+    cfg = PretrainConfig(decoder=SDFDecoderConfig(latent_dim=4, width=16, depth=2), sampling=SamplingConfig(num_points=1024),
+                         epochs=2, points_per_shape=512)
+    cache = tmp_path / "cache"
+    first = pretrain(cfg, tmp_path / "a", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+    stem = str(tmp_path / "a" / "prior")
+    # no epochs: the run is its init, exactly
+    same = pretrain(PretrainConfig(**{**cfg.__dict__, "epochs": 0, "init": stem}), tmp_path / "b", shape_set=_two_shapes(),
+                    cache_dir=cache, progress=False)
+    for (k, v), (k2, v2) in zip(first.decoder.state_dict().items(), same.decoder.state_dict().items()):
+        assert k == k2 and torch.equal(v, v2), k
+    assert torch.equal(first.latents, same.latents)
+    # more epochs from it train on from there, not from a fresh start
+    more = pretrain(PretrainConfig(**{**cfg.__dict__, "init": stem}), tmp_path / "c", shape_set=_two_shapes(), cache_dir=cache,
+                    progress=False)
+    fresh_again = pretrain(cfg, tmp_path / "d", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+    assert torch.equal(first.latents, fresh_again.latents) and not torch.equal(more.latents, first.latents)
+    # another decoder, or the shapes in another order, is refused in one line
+    with pytest.raises(PriorInitError, match="decoder"):
+        pretrain(PretrainConfig(**{**cfg.__dict__, "decoder": SDFDecoderConfig(latent_dim=4, width=32, depth=2), "init": stem}),
+                 tmp_path / "e", shape_set=_two_shapes(), cache_dir=cache, progress=False)
+    swapped = ShapeSet("two", (shape_mesh(18), shape_mesh(0)), ("cube", "sphere"), (2, 0), (0, 0))
+    with pytest.raises(PriorInitError, match="other shapes"):
+        pretrain(PretrainConfig(**{**cfg.__dict__, "init": stem}), tmp_path / "f", shape_set=swapped, cache_dir=cache, progress=False)
 
 
 def test_prior_save_load_round_trip(tmp_path):

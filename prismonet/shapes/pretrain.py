@@ -50,6 +50,13 @@ class PretrainConfig:
     checkpoint_every: int = 1
     """Epochs between checkpoints; one costs milliseconds, so a kill loses at most one epoch."""
     threads: int = 2
+    init: str | None = None
+    """A prior to start from (a shipped prior's name or a path stem): its decoder weights and codes, instead of a
+    fresh start. It must have this config's decoder and the same shapes in the same order; ``None``: from scratch."""
+
+
+class PriorInitError(ValueError):
+    """The prior given as ``init`` does not fit the run: another decoder, or other shapes."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +105,21 @@ def clamped_l1(pred: torch.Tensor, target: torch.Tensor, delta: float) -> torch.
 
 RESUME_IGNORED = ("checkpoint_every", "threads")
 """Config fields that do not change the result, so a run may resume with other values."""
+
+
+def _start_from(decoder: SDFDecoder, codes: torch.nn.Parameter, cfg: PretrainConfig, names: list[str]) -> None:
+    """Load ``cfg.init``'s decoder weights and codes into a fresh run, after checking that they fit."""
+    from prismonet.shapes.prior import load_prior
+
+    init = load_prior(cfg.init, frozen=False)
+    if asdict(init.decoder.cfg) != asdict(cfg.decoder):
+        raise PriorInitError(f"init prior {cfg.init!r}: decoder {asdict(init.decoder.cfg)} differs from the config's {asdict(cfg.decoder)}")
+    if list(init.shape_names) != list(names):
+        raise PriorInitError(f"init prior {cfg.init!r}: trained on other shapes ({len(init.shape_names)}) than this set ({len(names)}), "
+                             "or in another order")
+    decoder.load_state_dict(init.decoder.state_dict())
+    with torch.no_grad():
+        codes.copy_(init.latents)
 
 
 def _lr_factor(cfg: PretrainConfig, epoch: int) -> float:
@@ -152,6 +174,8 @@ def pretrain(
 
     ckpt_path = out / "checkpoint.safetensors"
     start_epoch, elapsed = 0, 0.0
+    if cfg.init is not None and not ckpt_path.is_file():
+        _start_from(decoder, codes, cfg, names)
     if ckpt_path.is_file():
         tensors, meta = load_checkpoint(ckpt_path)
         if resume_key(meta.get("config", {}), RESUME_IGNORED) != resume_key(json.loads(json.dumps(asdict(cfg))), RESUME_IGNORED) or meta.get("shape_set") != shapes.name:
