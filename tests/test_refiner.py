@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, apply_correction, centre_pixels, glimpse,
-                                     slot_latents, slot_views, with_coords)
+from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, active_rows, apply_correction, centre_pixels,
+                                     glimpse, refiner_inputs, slot_latents, slot_views, with_coords)
 from prismonet.render import SceneParams
 
 
@@ -42,6 +42,11 @@ def test_correction_hand_computed():
     for name in ("position", "cos_sin", "scale", "z_tex"):
         assert torch.equal(getattr(kept, name)[0, 1], getattr(p, name)[0, 1])
     assert torch.equal(kept.position[0, 0], new.position[0, 0])
+    # without the turn the yaw stays, and everything else moves as with it
+    still = apply_correction(p, d, pos_scale, (0.25, 0.9), turn=False)
+    assert torch.equal(still.cos_sin, p.cos_sin)
+    for name in ("position", "scale", "z_tex", "z_sh"):
+        assert torch.equal(getattr(still, name), getattr(kept, name))
 
 
 def test_shape_correction_hand_computed():
@@ -126,6 +131,29 @@ def test_slot_views_and_latents():
     assert float(lat[1, 20]) == pytest.approx(math.log(0.4))
 
 
+@pytest.mark.parametrize("glimpse_frac, coords", [(0.0, False), (0.0, True), (0.375, True)])
+def test_inputs_of_some_slots_are_those_rows_of_every_slots_inputs(glimpse_frac, coords):
+    """Built for the active rows alone, the refiner's inputs equal those rows of the inputs of every slot, exactly."""
+    B, N, H, W = 3, 4, 16, 16
+    g = torch.Generator().manual_seed(3)
+    image, comp = torch.rand(B, 3, H, W, generator=g), torch.rand(B, 3, H, W, generator=g)
+    instance = torch.randint(0, N + 1, (B, H, W), generator=g)
+    obj_mask = torch.rand(B, N, H, W, generator=g) > 0.5
+    p = SceneParams(torch.randn(B, N, 8, generator=g), torch.randn(B, N, 7, generator=g),
+                    torch.randn(B, N, 3, generator=g) + torch.tensor([0.0, 0.0, 6.0]), torch.randn(B, N, 2, generator=g),
+                    torch.rand(B, N, generator=g) + 0.2)
+    K = torch.tensor([[20.0, 0.0, 7.5], [0.0, 20.0, 7.5], [0.0, 0.0, 1.0]]).expand(B, 3, 3)
+    T = torch.eye(4).expand(B, 4, 4)
+    args = (image, comp, instance, obj_mask, p, torch.zeros(3), torch.ones(3), K, T, coords, glimpse_frac)
+    every_v, every_l = refiner_inputs(*args)
+    active = torch.tensor([[True, False, False, True], [False, False, False, False], [False, True, True, True]])
+    rows = active_rows(active)
+    assert rows.tolist() == [0, 3, 9, 10, 11]
+    some_v, some_l = refiner_inputs(*args, rows)
+    assert torch.equal(some_v, every_v[rows]) and torch.equal(some_l, every_l[rows])
+    assert active_rows(torch.ones(B, N, dtype=torch.bool)) is None and active_rows(None) is None
+
+
 def test_glimpse_and_coords_hand_computed():
     """A whole-image glimpse centred on the image is the image; a half-size glimpse samples every second
     half pixel around its centre; position channels run from -1 + 1/W to 1 - 1/W at pixel centres."""
@@ -200,6 +228,30 @@ def test_fresh_refiner_is_the_identity(shipped):
         assert torch.allclose(getattr(r.latents.params, name), getattr(out.latents.params, name), atol=1e-6)
         assert torch.equal(getattr(plain.latents.params, name), getattr(out.latents.params, name))
     assert torch.allclose(r.composite.image, out.composite.image, atol=1e-5)
+
+
+def test_refiner_turn_off_keeps_the_encoders_yaw(shipped):
+    """``refiner_turn=False``: a refiner that turns every slot by 0.3 rad moves the positions as before and leaves the yaws."""
+    from dataclasses import replace
+
+    from prismonet.model.prismonet import PriSMONet
+    from prismonet.model.refiner_fit import with_refiner
+
+    model, b, _ = shipped
+    ref = with_refiner(model).eval()
+    with torch.no_grad():
+        ref.refiner.head[-1].bias[3] = math.atanh(0.3 / MAX_TURN)
+        ref.refiner.head[-1].bias[0] = 0.2
+    still = PriSMONet(replace(ref.cfg, refiner_turn=False), prior=ref.prior).eval()
+    still.load_state_dict(ref.state_dict())
+    with torch.no_grad():
+        enc = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False).latents.params
+        turned = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params
+        kept = still(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params
+    assert torch.equal(kept.cos_sin, enc.cos_sin)
+    angle = torch.atan2(turned.cos_sin[..., 1], turned.cos_sin[..., 0]) - torch.atan2(enc.cos_sin[..., 1], enc.cos_sin[..., 0])
+    assert torch.allclose(torch.remainder(angle + math.pi, 2 * math.pi) - math.pi, torch.full_like(angle, 0.3), atol=1e-4)
+    assert torch.equal(kept.position, turned.position) and not torch.equal(kept.position, enc.position)
 
 
 def _shifted_targets(model, ds, folder, count, shift, shape_step: float | None = None, visible=None):

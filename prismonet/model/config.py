@@ -80,6 +80,10 @@ class ModelConfig:
     refiner_keep: bool = False
     """The refiner also says whether each slot is worth keeping (a logit, trained on whether the search's fit shows
     the slot); a slot it drops becomes inactive and renders nothing, so slivers and hidden slots cost nothing."""
+    refiner_turn: bool = True
+    """The refinement passes turn each slot's yaw as the refiner says (inference; beyond the paper). ``False`` keeps the
+    encoder's yaw: for an encoder taught yaws by L_pose, whose refiner was fitted to a weakly supervised search's yaws
+    (EVALUATION.md, "Session 59"). The refiner's fit ignores it."""
     color_step: bool = False
     """A learnt colour step at inference (beyond the paper; ``prismonet.model.color_step``): after the refinement
     passes, one more look at every slot (through the refiner's view: ``refiner_glimpse``, ``refiner_coords``) moves

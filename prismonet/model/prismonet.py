@@ -17,7 +17,7 @@ from prismonet.model.color_step import ColorStep
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
-from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, apply_correction, on_active_slots, refiner_inputs, split_keep
+from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, active_rows, apply_correction, on_rows, refiner_inputs, split_keep
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.model.unexplained import AnchorRule, find_anchors
@@ -322,11 +322,11 @@ class PriSMONet(nn.Module):
         not above ``keep_above`` is dropped (``apply_correction``)."""
         H, W = image.shape[-2:]
         params = out.latents.params
-        views, latents = self.refiner_inputs(image, out.composite.image, out.composite.instance, out.obj_mask, params,
-                                             K, T_world_cam)
-        delta = self._refiner_delta(views, latents, params.active if only is None else only)
+        delta = self._on_slots(self.refiner, image, out.composite.image, out.composite.instance, out.obj_mask, params, K,
+                               T_world_cam, params.active if only is None else only)
         subject = params if only is None else replace(params, active=only)
-        new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above)
+        new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above,
+                               self.cfg.refiner_turn)
         if only is not None:
             before = params.active if params.active is not None else torch.ones_like(only)
             new.active = (before & ~only) | new.active  # the subjects' activity after the pass, the others' as before
@@ -402,24 +402,30 @@ class PriSMONet(nn.Module):
             obj = render_objects(self.sdf_fn, None, p, K, T_world_cam, H, W, self.render_settings())
         new, comp = p, out.composite
         for _ in range(self.cfg.color_step_passes):  # each pass sees the image the one before it made
-            views, latents = self.refiner_inputs(image, comp.image, comp.instance, out.obj_mask, new, K, T_world_cam)
-            new = replace(new, z_tex=new.z_tex + on_active_slots(self.color_step, views, latents, p.active).reshape(B, N, -1))
+            step = self._on_slots(self.color_step, image, comp.image, comp.instance, out.obj_mask, new, K, T_world_cam, p.active)
+            new = replace(new, z_tex=new.z_tex + step.reshape(B, N, -1))
             color = shade_objects(self.color_fn, new, obj)
             comp = composite(obj.depth, obj.mask, color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
 
-    def _refiner_delta(self, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
-        """The refiner's raw output for every slot; the network runs on the active slots only (an inactive slot's row
-        is zero: ``apply_correction`` leaves it as it is, and a zero keep logit keeps it inactive), so a scene pays for
-        the slots it uses."""
-        return on_active_slots(self.refiner, views, latents, active)
+    def _on_slots(self, net: nn.Module, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor,
+                  obj_mask: torch.Tensor, params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor,
+                  active: torch.Tensor | None) -> torch.Tensor:
+        """A slot network's (the refiner's or the colour step's) raw output for every slot: its inputs are built and it
+        runs on the ``active`` slots only (an inactive slot's row is zero: ``apply_correction`` leaves it as it is, and
+        a zero keep logit keeps it inactive), so a scene pays for the slots it uses."""
+        rows = active_rows(active)
+        views, latents = self.refiner_inputs(image, comp_image, instance, obj_mask, params, K, T_world_cam, rows)
+        return net(views, latents) if rows is None else on_rows(net, views, latents, rows, params.scale.numel())
 
     def refiner_inputs(self, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
-                       params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The refiner's views and latents of every slot, as its config asks (``refiner.refiner_inputs``)."""
+                       params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor,
+                       rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The refiner's views and latents of every slot (or of slot ``rows``), as its config asks
+        (``refiner.refiner_inputs``)."""
         return refiner_inputs(image, comp_image, instance, obj_mask, params, self.pos_offset, self.pos_scale, K,
-                              T_world_cam, self.cfg.refiner_coords, self.cfg.refiner_glimpse)
+                              T_world_cam, self.cfg.refiner_coords, self.cfg.refiner_glimpse, rows)
 
     def _empty_slot(self, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, ground_z: torch.Tensor) -> SceneParams:
         """One inactive slot per scene: the decoding of a zero encoder output, marked inactive."""

@@ -68,17 +68,33 @@ class SlotRefiner(nn.Module):
 def on_active_slots(net: nn.Module, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
     """``net(views, latents)`` for every slot row, the network run on the active slots only (``active (B, N)``; an
     inactive slot's row is zero), so a scene pays for the slots it uses. ``net``'s last layer is ``net.head[-1]``."""
+    rows = active_rows(active)
+    return net(views, latents) if rows is None else on_rows(net, views[rows], latents[rows], rows, views.shape[0])
+
+
+def active_rows(active: torch.Tensor | None) -> torch.Tensor | None:
+    """The flat rows ``b * N + k`` of the active slots of ``active (B, N)``; ``None`` when every slot is active."""
     if active is None or bool(active.all()):
-        return net(views, latents)
-    rows = active.reshape(-1).nonzero().squeeze(1)
-    out = views.new_zeros(views.shape[0], net.head[-1].out_features)
-    return out.index_copy(0, rows, net(views[rows], latents[rows])) if len(rows) else out
+        return None
+    return active.reshape(-1).nonzero().squeeze(1)
 
 
-def slot_views(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor) -> torch.Tensor:
+def on_rows(net: nn.Module, views: torch.Tensor, latents: torch.Tensor, rows: torch.Tensor, total: int) -> torch.Tensor:
+    """``net`` on the inputs of slot ``rows`` alone, scattered into ``(total, out)`` rows with zeros elsewhere."""
+    out = views.new_zeros(total, net.head[-1].out_features)
+    return out.index_copy(0, rows, net(views, latents)) if len(rows) else out
+
+
+def slot_views(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
+               rows: torch.Tensor | None = None) -> torch.Tensor:
     """``(B*N, 8, H, W)``: per slot, the image, the image minus the composition, the slot's visible
-    silhouette (its id in ``instance (B, H, W)``) and its full silhouette (``obj_mask (B, N, H, W)``)."""
+    silhouette (its id in ``instance (B, H, W)``) and its full silhouette (``obj_mask (B, N, H, W)``).
+    With ``rows`` (flat slot rows ``b * N + k``), those slots' views alone, ``(len(rows), 8, H, W)``."""
     B, N, H, W = obj_mask.shape
+    if rows is not None:
+        b, k = rows // N, rows % N
+        visible = (instance[b] == (k + 1)[:, None, None]).to(image.dtype)
+        return torch.cat([image[b], (image - comp_image)[b], visible[:, None], obj_mask[b, k][:, None].to(image.dtype)], 1)
     ids = torch.arange(1, N + 1, device=instance.device)[None, :, None, None]
     visible = (instance[:, None] == ids).to(image.dtype)
     per_scene = torch.cat([image, image - comp_image], 1)[:, None].expand(B, N, 6, H, W)
@@ -121,16 +137,20 @@ def glimpse(views: torch.Tensor, centre_uv: torch.Tensor, frac: float) -> tuple[
 
 def refiner_inputs(image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor, obj_mask: torch.Tensor,
                    params: SceneParams, pos_offset: torch.Tensor, pos_scale: torch.Tensor, K: torch.Tensor,
-                   T_world_cam: torch.Tensor, coords: bool = False, glimpse_frac: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+                   T_world_cam: torch.Tensor, coords: bool = False, glimpse_frac: float = 0.0,
+                   rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The refiner's two inputs per slot: ``slot_views`` (glimpsed around the slot's projected centre when
-    ``glimpse_frac`` > 0, with position channels when ``coords``) and ``slot_latents``."""
-    views = slot_views(image, comp_image, instance, obj_mask)
+    ``glimpse_frac`` > 0, with position channels when ``coords``) and ``slot_latents``. With ``rows`` (flat slot
+    rows, e.g. ``active_rows``) only those slots' inputs, the same values: a scene pays for the slots it uses."""
+    views = slot_views(image, comp_image, instance, obj_mask, rows)
+    latents = slot_latents(params, pos_offset, pos_scale)
     uv = None
     if glimpse_frac > 0:
-        views, uv = glimpse(views, centre_pixels(params.position, K, T_world_cam).reshape(-1, 2), glimpse_frac)
+        centre = centre_pixels(params.position, K, T_world_cam).reshape(-1, 2)
+        views, uv = glimpse(views, centre if rows is None else centre[rows], glimpse_frac)
     if coords:
         views = with_coords(views, uv)
-    return views, slot_latents(params, pos_offset, pos_scale)
+    return views, latents if rows is None else latents[rows]
 
 
 def slot_latents(params: SceneParams, pos_offset: torch.Tensor, pos_scale: torch.Tensor) -> torch.Tensor:
@@ -149,13 +169,13 @@ def split_keep(delta: torch.Tensor, keep: bool) -> tuple[torch.Tensor, torch.Ten
 
 def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.Tensor,
                      scale_range: tuple[float, float], keep: bool = False,
-                     keep_above: float | None = 0.0) -> SceneParams:
+                     keep_above: float | None = 0.0, turn: bool = True) -> SceneParams:
     """``params`` moved by the refiner's raw output ``delta (B*N, 5 + D_tex [+ D_sh] [+ 1])``: position + ``pos_scale``
     times the first three, yaw turned by ``MAX_TURN tanh``, scale times ``exp(MAX_LOG_SCALE tanh)``
     (kept in ``scale_range``), texture latent plus the next ``D_tex``, and shape latent plus the next ``D_sh``
     when there are that many more. With ``keep`` the last value is a keep logit: a slot whose logit is not
-    above ``keep_above`` (default 0) becomes inactive; ``keep_above=None`` drops none. Inactive slots keep their
-    latents."""
+    above ``keep_above`` (default 0) becomes inactive; ``keep_above=None`` drops none. With ``turn`` ``False`` the yaw
+    stays as it is. Inactive slots keep their latents."""
     B, N = params.scale.shape
     delta, keep_logit = split_keep(delta, keep)
     d = delta.reshape(B, N, -1)
@@ -165,10 +185,13 @@ def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.
         if d.shape[-1] != tex_end + z_sh.shape[-1]:
             raise ValueError(f"refiner output of {d.shape[-1]} values: expected {tex_end} or {tex_end + z_sh.shape[-1]}")
         z_sh = z_sh + d[..., tex_end:]
-    turn = MAX_TURN * torch.tanh(d[..., 3])
-    c, s = torch.cos(turn), torch.sin(turn)
     cs = params.cos_sin
-    cos_sin = torch.stack([cs[..., 0] * c - cs[..., 1] * s, cs[..., 0] * s + cs[..., 1] * c], -1)
+    if turn:
+        angle = MAX_TURN * torch.tanh(d[..., 3])
+        c, s = torch.cos(angle), torch.sin(angle)
+        cos_sin = torch.stack([cs[..., 0] * c - cs[..., 1] * s, cs[..., 0] * s + cs[..., 1] * c], -1)
+    else:
+        cos_sin = cs
     lo, hi = scale_range
     scale = (params.scale * torch.exp(MAX_LOG_SCALE * torch.tanh(d[..., 4]))).clamp(lo, hi)
     active = params.active
