@@ -11,7 +11,9 @@ BENCHMARKS.md, "Threads on a shared machine", has the table.
 probes again at once when ``slow_steps`` steps in a row take far longer than the last probe said they
 would. A probe that confirms the choice before it doubles the wait before the next (up to
 ``max_period``), since under a lasting load every probe pays for its steps at the slow count; a
-changed choice or a load change brings the wait back to ``period``. Nothing is run twice: the probe
+changed choice or a load change brings the wait back to ``period``. Within a probe, a candidate whose first step
+takes ``cut_factor`` times the median of one already timed in full gets no more steps: under a load the 2-thread steps
+are 2.6x slower, and each one a probe spends on them is lost. Nothing is run twice: the probe
 steps are ordinary steps. The thread count changes float rounding (1 and 2 threads
 give gradients ~1e-7 apart), so a run that uses it is not bit-reproducible; fixed counts are.
 """
@@ -37,24 +39,29 @@ class ThreadGovernor:
             that keeps the choice (``period``: no backoff).
         slow_steps: consecutive slow steps that start an early probe (1: any single one, which a
             scheduler hiccup under load also gives).
+        cut_factor: a probe's candidate whose first step is this many times slower than the median of a candidate
+            already timed in full is not timed further (``None``: every candidate gets ``probe`` steps).
         set_threads: applies a count (``torch.set_num_threads`` by default; a test passes a fake).
     """
 
     def __init__(self, candidates: tuple[int, ...], period: int = 200, probe: int = 3, slow_factor: float = 2.0,
-                 set_threads: Callable[[int], None] | None = None, max_period: int = 1600, slow_steps: int = 2) -> None:
+                 set_threads: Callable[[int], None] | None = None, max_period: int = 1600, slow_steps: int = 2,
+                 cut_factor: float | None = 1.5) -> None:
         if not candidates or any(c <= 0 for c in candidates):
             raise ValueError(f"candidates must be positive thread counts, got {candidates}")
         if period <= 0 or probe <= 0 or slow_factor <= 1:
             raise ValueError(f"period and probe must be positive and slow_factor > 1, got {period}, {probe}, {slow_factor}")
         if max_period < period or slow_steps <= 0:
             raise ValueError(f"max_period must be at least period and slow_steps positive, got {max_period} and {slow_steps}")
+        if cut_factor is not None and cut_factor <= 1:
+            raise ValueError(f"cut_factor must be above 1 (or None), got {cut_factor}")
         if set_threads is None:
             import torch
 
             set_threads = torch.set_num_threads
         self.candidates = tuple(dict.fromkeys(candidates))
         self.period, self.probe, self.slow_factor = period, probe, slow_factor
-        self.max_period, self.slow_steps = max_period, slow_steps
+        self.max_period, self.slow_steps, self.cut_factor = max_period, slow_steps, cut_factor
         # steps from one probe to the next, doubling while probes keep the choice; 0 before the first probe
         # and during an early one, so that the wait after it is `period`
         self._wait = 0
@@ -75,6 +82,11 @@ class ThreadGovernor:
         self._times = {c: [] for c in self.candidates}
         self._queue = [c for c in self.candidates for _ in range(self.probe)]
 
+    def _hopeless(self, seconds: float) -> bool:
+        """Whether a first probe step of ``seconds`` is ``cut_factor`` times slower than a fully timed candidate."""
+        done = [statistics.median(t) for t in self._times.values() if len(t) == self.probe]
+        return self.cut_factor is not None and bool(done) and seconds > self.cut_factor * min(done)
+
     def before_step(self) -> int:
         """Set (and return) the thread count for the next step."""
         n = self._queue[0] if self._queue else self.choice
@@ -87,7 +99,10 @@ class ThreadGovernor:
         """Record the step just run (with the count ``before_step`` set)."""
         self._steps += 1
         if self._queue:
-            self._times[self._queue.pop(0)].append(seconds)
+            n = self._queue.pop(0)
+            self._times[n].append(seconds)
+            if len(self._times[n]) == 1 and self._hopeless(seconds):
+                self._queue = [c for c in self._queue if c != n]
             if not self._queue:
                 medians = {c: statistics.median(t) for c, t in self._times.items()}
                 choice = min(medians, key=medians.get)

@@ -8,8 +8,12 @@ governor keeps its state from one block to its next. ``--load`` starts one pure-
 second process on one of the two cores) for the whole run. The table gives each variant's mean time per
 step over all its steps, the governor's probes included, and how many probes it ran. Variants: ``1`` and
 ``2`` threads fixed; ``eager``: the governor before session 42 (a probe every 200 steps, and at once after
-one slow step); ``backoff``: the default now (the wait doubles to 1,600 steps while probes keep the
-choice; two slow steps in a row start an early probe).
+one slow step); ``backoff``: the rule of sessions 42-58 (the wait doubles to 1,600 steps while probes keep the
+choice; two slow steps in a row start an early probe); ``cut``: the default now (session 59), ``backoff`` with a
+probe that stops timing a candidate whose first step is 1.5x slower than one already timed.
+
+The step is the code as it is (``bench_step.py``'s last variant; before session 59 this script switched the losses
+back to the kornia blur, so session 58's governor figures timed that older step).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import sys
 import torch
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from bench_step import ShippedStep, configure  # noqa: E402  (the same step; the code as it is: variant "blur")
+from bench_step import VARIANTS, ShippedStep, configure  # noqa: E402  (the same step, the code as it is)
 
 
 def main() -> int:
@@ -31,7 +35,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--block", type=int, default=50)
     ap.add_argument("--load", action="store_true")
-    ap.add_argument("--variants", default="1,2,eager,backoff")
+    ap.add_argument("--variants", default="1,2,eager,backoff,cut")
     args = ap.parse_args()
     if args.rounds <= 0 or args.block <= 0:
         print("bench_governor: error: --rounds and --block must be positive", file=sys.stderr)
@@ -39,11 +43,12 @@ def main() -> int:
 
     from prismonet.threads import ThreadGovernor
 
-    configure("blur")
+    configure(VARIANTS[-1])
     step = ShippedStep(args.data)
 
     names = args.variants.split(",")
-    govs = {"eager": ThreadGovernor((1, 2), max_period=200, slow_steps=1), "backoff": ThreadGovernor((1, 2))}
+    govs = {"eager": ThreadGovernor((1, 2), max_period=200, slow_steps=1, cut_factor=None),
+            "backoff": ThreadGovernor((1, 2), cut_factor=None), "cut": ThreadGovernor((1, 2))}
     bad = [n for n in names if n not in ("1", "2", *govs)]
     if bad:
         print(f"bench_governor: error: unknown variants {bad}", file=sys.stderr)

@@ -26,9 +26,24 @@ def test_quiet_machine_keeps_two_threads():
 
 
 def test_loaded_machine_switches_to_one_thread():
+    """Under load the first 2-thread step of a probe is 2.6x the 1-thread median, so the probe stops there."""
     gov = ThreadGovernor((1, 2), period=50, probe=3, set_threads=lambda n: None)
     used = drive(gov, lambda n, i: {1: 0.217, 2: 0.555}[n], 20)
-    assert used[6:] == [1] * 14
+    assert used[:4] == [1, 1, 1, 2] and used[4:] == [1] * 16
+    assert gov.history[0] == (4, {1: 0.217, 2: 0.555})
+    every = ThreadGovernor((1, 2), period=50, probe=3, cut_factor=None, set_threads=lambda n: None)
+    assert drive(every, lambda n, i: {1: 0.217, 2: 0.555}[n], 20)[:7] == [1, 1, 1, 2, 2, 2, 1]
+
+
+def test_a_probe_cuts_a_candidate_only_on_its_first_step_and_only_when_far_slower():
+    """1.4x slower is not cut at the 1.5 default; a first step 1.6x slower is; a slow second step never cuts."""
+    gov = ThreadGovernor((1, 2), period=50, probe=3, set_threads=lambda n: None)
+    assert drive(gov, lambda n, i: {1: 0.2, 2: 0.28}[n], 8)[:7] == [1, 1, 1, 2, 2, 2, 1]
+    gov = ThreadGovernor((1, 2), period=50, probe=3, set_threads=lambda n: None)
+    assert drive(gov, lambda n, i: {1: 0.2, 2: 0.32}[n], 6)[:5] == [1, 1, 1, 2, 1]
+    gov = ThreadGovernor((1, 2), period=50, probe=3, set_threads=lambda n: None)
+    late = lambda n, i: 0.9 if (n == 2 and i == 4) else {1: 0.2, 2: 0.15}[n]
+    assert drive(gov, late, 8)[:7] == [1, 1, 1, 2, 2, 2, 2] and gov.choice == 2
 
 
 def test_load_change_triggers_an_early_probe():
@@ -38,8 +53,8 @@ def test_load_change_triggers_an_early_probe():
     used = drive(gov, cost, 22)
     assert used[4:10] == [2] * 6
     assert used[10:12] == [2, 2]  # the two slow steps in a row that reveal the load...
-    assert used[12:16] == [1, 1, 2, 2]  # ...start a probe at once
-    assert used[16:] == [1] * 6
+    assert used[12:15] == [1, 1, 2]  # ...start a probe at once, whose 2-thread step, 2.5x slower, ends it
+    assert used[15:] == [1] * 7
     assert len(gov.history) == 2
 
 
@@ -69,7 +84,7 @@ def test_probes_that_keep_the_choice_back_off_and_a_change_resets_the_wait():
 
 @pytest.mark.parametrize("kw", [dict(candidates=()), dict(candidates=(0, 1)), dict(candidates=(1,), period=0),
                                 dict(candidates=(1,), slow_factor=1.0), dict(candidates=(1,), period=10, max_period=5),
-                                dict(candidates=(1,), slow_steps=0)])
+                                dict(candidates=(1,), slow_steps=0), dict(candidates=(1,), cut_factor=1.0)])
 def test_rejects_bad_settings(kw):
     with pytest.raises(ValueError):
         ThreadGovernor(set_threads=lambda n: None, **kw)
