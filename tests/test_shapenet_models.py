@@ -3,7 +3,7 @@ their measured figures with a margin (``python3 -m prismonet evaluate cars prism
 AP0.5, AR0.5 on the seen / unseen shapes of ``samples/NAME`` / ``samples/NAME_novel``: ``cars`` (session 41:
 distilled, far clip + seek, then both with new targets) 0.865, 0.885 / 0.677, 0.719; ``cars_glimpse`` (session 46: ``cars`` with a glimpse refiner fitted to its
 search targets, applied twice) 0.865, 0.885 / 0.740, 0.781; ``cars_keep`` (session 47: the same refiner that also learns which
-slots to keep) 0.885, 0.885 / 0.792, 0.760; ``cars_seek``, its start:
+slots to keep; since session 59 fitted to search targets followed by the pruning rule) 0.906, 0.885 / 0.760, 0.760; ``cars_seek``, its start:
 0.875, 0.854 / 0.625, 0.646; ``cars_distill``, that one's start: 0.875,
 0.729 / 0.740, 0.688; ``cars_20k``, that one's start: 0.844, 0.667 / 0.760, 0.531; ``tableware``, the paper's
 tabletop setting: 0.729, 0.667 / 0.281, 0.271; ``tableware_keep`` (session 51: ``tableware`` with a glimpse refiner
