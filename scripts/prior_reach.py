@@ -34,6 +34,11 @@ def main(argv: list[str] | None = None) -> int:
     from prismonet.render import RenderSettings
     from prismonet.shapes.prior import load_prior
 
+    try:
+        priors = [(name, load_prior(name)) for name in args.priors]
+    except (FileNotFoundError, ValueError) as e:
+        print(f"prior_reach: error: {e}", file=sys.stderr)
+        return 2
     if _scenes_of(args.setting) is None:
         print(f"prior_reach: error: no scenes of {args.setting} under data/ (prismonet data clevr --shapes {args.setting})", file=sys.stderr)
         return 2
@@ -43,8 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| {Path(args.setting).name}, first {args.scenes} val scenes, true poses and codes | samples | objects at IoU >= 0.5 "
           "| mean object IoU | foreground IoU | foreground depth RMSE |")
     print("|---|---|---|---|---|---|")
-    for name in args.priors:
-        prior = load_prior(name)
+    for name, prior in priors:
         for n in samples:
             fg, ious, rmse = fit(prior, RenderSettings(refine_steps=2, samples=n, box=prior.bounds))
             print(f"| {name} | {n} | {(ious >= 0.5).mean():.3f} | {ious.mean():.3f} | {fg:.3f} | {rmse:.3f} |")

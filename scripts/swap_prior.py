@@ -25,8 +25,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("prior", help="a shipped prior's name or a path stem (PRIOR.safetensors + PRIOR.json)")
     ap.add_argument("out", help="new run folder")
     args = ap.parse_args(argv)
-    model, info = load_model(args.model)
-    prior = load_prior(args.prior)
+    try:
+        model, info = load_model(args.model)
+        prior = load_prior(args.prior)
+    except (FileNotFoundError, ValueError) as e:  # CheckpointError is a ValueError
+        raise SystemExit(f"swap_prior: error: {e}") from None
     if prior.latents.shape[1] != model.prior.latents.shape[1]:
         raise SystemExit(f"{args.prior}: latent size {prior.latents.shape[1]}, the model's prior has {model.prior.latents.shape[1]}")
     new = PriSMONet(replace(model.cfg, prior=str(args.prior)))

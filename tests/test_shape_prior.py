@@ -157,6 +157,30 @@ def test_pretraining_can_start_from_a_prior_and_checks_that_it_fits(tmp_path):
         pretrain(PretrainConfig(**{**cfg.__dict__, "init": stem}), tmp_path / "f", shape_set=swapped, cache_dir=cache, progress=False)
 
 
+def test_an_init_prior_that_does_not_exist_is_refused_before_any_work(tmp_path):
+    cfg = PretrainConfig(decoder=SDFDecoderConfig(latent_dim=4, width=16, depth=2), sampling=SamplingConfig(num_points=1024),
+                         epochs=1, points_per_shape=512, init=str(tmp_path / "nosuch"))
+    with pytest.raises(FileNotFoundError, match="no such shape-prior config"):
+        pretrain(cfg, tmp_path / "run", shape_set=_two_shapes(), progress=False)
+    assert not (tmp_path / "run").exists()  # no folder, no SDF samples made for nothing
+
+
+@pytest.mark.parametrize("script, args", [("swap_prior.py", ["chairs_refiner", "NOSUCH"]),
+                                          ("swap_prior.py", ["NOSUCH_MODEL", "chairs"]),
+                                          ("prior_reach.py", ["data/furniture/chairs", "NOSUCH"])])
+def test_the_prior_scripts_refuse_a_missing_prior_or_model_in_one_line(tmp_path, script, args):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / script
+    extra = [str(tmp_path / "out")] if script == "swap_prior.py" else []
+    r = subprocess.run([sys.executable, str(path), *args, *extra], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and "NOSUCH" in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_prior_save_load_round_trip(tmp_path):
     phi = SDFDecoder(SDFDecoderConfig(latent_dim=8, width=16, depth=2))
     prior = ShapePrior(phi, torch.randn(3, 8), ["a", "b", "c"], [0, 1, 2], [0, 0, 0], {"note": "x"})

@@ -24,7 +24,6 @@ from pathlib import Path
 import torch
 
 from prismonet.model.io import rebuilt
-from prismonet.model.refiner import on_active_slots
 
 
 class ColorStepError(ValueError):
@@ -156,9 +155,8 @@ def _step_latents(model, cache, ds, idx: torch.Tensor) -> torch.Tensor:
     for i in range(model.cfg.color_step_passes):
         if i > 0:
             comp = recolored(model, cache, idx, params.z_tex).transpose(1, 2).reshape(B, 3, H, W)
-        views, latents = model.refiner_inputs(b.rgb, comp, cache["instance"][idx].long(), cache["obj_mask"][idx], params,
-                                              b.K, b.T_world_cam)
-        step = on_active_slots(model.color_step, views, latents, cache["active"][idx]).reshape(B, N, -1)
+        step = model.on_slots(model.color_step, b.rgb, comp, cache["instance"][idx].long(), cache["obj_mask"][idx], params,
+                              b.K, b.T_world_cam, cache["active"][idx]).reshape(B, N, -1)
         params = replace(params, z_tex=params.z_tex + step)
     return params.z_tex
 

@@ -322,7 +322,7 @@ class PriSMONet(nn.Module):
         not above ``keep_above`` is dropped (``apply_correction``)."""
         H, W = image.shape[-2:]
         params = out.latents.params
-        delta = self._on_slots(self.refiner, image, out.composite.image, out.composite.instance, out.obj_mask, params, K,
+        delta = self.on_slots(self.refiner, image, out.composite.image, out.composite.instance, out.obj_mask, params, K,
                                T_world_cam, params.active if only is None else only)
         subject = params if only is None else replace(params, active=only)
         new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above,
@@ -402,18 +402,18 @@ class PriSMONet(nn.Module):
             obj = render_objects(self.sdf_fn, None, p, K, T_world_cam, H, W, self.render_settings())
         new, comp = p, out.composite
         for _ in range(self.cfg.color_step_passes):  # each pass sees the image the one before it made
-            step = self._on_slots(self.color_step, image, comp.image, comp.instance, out.obj_mask, new, K, T_world_cam, p.active)
+            step = self.on_slots(self.color_step, image, comp.image, comp.instance, out.obj_mask, new, K, T_world_cam, p.active)
             new = replace(new, z_tex=new.z_tex + step.reshape(B, N, -1))
             color = shade_objects(self.color_fn, new, obj)
             comp = composite(obj.depth, obj.mask, color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
 
-    def _on_slots(self, net: nn.Module, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor,
+    def on_slots(self, net: nn.Module, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor,
                   obj_mask: torch.Tensor, params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor,
                   active: torch.Tensor | None) -> torch.Tensor:
-        """A slot network's (the refiner's or the colour step's) raw output for every slot: its inputs are built and it
-        runs on the ``active`` slots only (an inactive slot's row is zero: ``apply_correction`` leaves it as it is, and
+        """A slot network's (the refiner's or the colour step's) raw output ``(B*N, out)`` for every slot: its inputs are
+        built and it runs on the ``active (B, N)`` slots only (an inactive slot's row is zero: ``apply_correction`` leaves it as it is, and
         a zero keep logit keeps it inactive), so a scene pays for the slots it uses."""
         rows = active_rows(active)
         views, latents = self.refiner_inputs(image, comp_image, instance, obj_mask, params, K, T_world_cam, rows)

@@ -65,13 +65,6 @@ class SlotRefiner(nn.Module):
         return self.head(torch.cat([h, latents], 1))
 
 
-def on_active_slots(net: nn.Module, views: torch.Tensor, latents: torch.Tensor, active: torch.Tensor | None) -> torch.Tensor:
-    """``net(views, latents)`` for every slot row, the network run on the active slots only (``active (B, N)``; an
-    inactive slot's row is zero), so a scene pays for the slots it uses. ``net``'s last layer is ``net.head[-1]``."""
-    rows = active_rows(active)
-    return net(views, latents) if rows is None else on_rows(net, views[rows], latents[rows], rows, views.shape[0])
-
-
 def active_rows(active: torch.Tensor | None) -> torch.Tensor | None:
     """The flat rows ``b * N + k`` of the active slots of ``active (B, N)``; ``None`` when every slot is active."""
     if active is None or bool(active.all()):

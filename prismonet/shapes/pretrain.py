@@ -107,19 +107,19 @@ RESUME_IGNORED = ("checkpoint_every", "threads")
 """Config fields that do not change the result, so a run may resume with other values."""
 
 
-def _start_from(decoder: SDFDecoder, codes: torch.nn.Parameter, cfg: PretrainConfig, names: list[str]) -> None:
-    """Load ``cfg.init``'s decoder weights and codes into a fresh run, after checking that they fit."""
+def _init_prior(cfg: PretrainConfig, names: list[str]):
+    """``cfg.init`` loaded and checked against the run (its decoder and shapes), or ``None`` without one."""
     from prismonet.shapes.prior import load_prior
 
+    if cfg.init is None:
+        return None
     init = load_prior(cfg.init, frozen=False)
     if asdict(init.decoder.cfg) != asdict(cfg.decoder):
         raise PriorInitError(f"init prior {cfg.init!r}: decoder {asdict(init.decoder.cfg)} differs from the config's {asdict(cfg.decoder)}")
     if list(init.shape_names) != list(names):
         raise PriorInitError(f"init prior {cfg.init!r}: trained on other shapes ({len(init.shape_names)}) than this set ({len(names)}), "
                              "or in another order")
-    decoder.load_state_dict(init.decoder.state_dict())
-    with torch.no_grad():
-        codes.copy_(init.latents)
+    return init
 
 
 def _lr_factor(cfg: PretrainConfig, epoch: int) -> float:
@@ -151,11 +151,12 @@ def pretrain(
     from prismonet.shapes.prior import ShapePrior
 
     torch.set_num_threads(cfg.threads)
+    shapes = load_shape_set(shape_set) if isinstance(shape_set, str) else shape_set
+    meshes, names, cats, insts = shapes.meshes, list(shapes.names), list(shapes.category_ids), list(shapes.instance_ids)
+    init = _init_prior(cfg, names)  # checked before any folder or sample is made
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cache = out / "sdf_samples" if cache_dir is None else Path(cache_dir)
-    shapes = load_shape_set(shape_set) if isinstance(shape_set, str) else shape_set
-    meshes, names, cats, insts = shapes.meshes, list(shapes.names), list(shapes.category_ids), list(shapes.instance_ids)
     samples = [
         cached_sdf_samples(v, f, cfg.sampling, seed=cfg.seed * 1000 + i, cache_dir=cache, name=n)
         for i, ((v, f), n) in enumerate(tqdm(list(zip(meshes, names)), desc="SDF samples", disable=not progress))
@@ -174,8 +175,10 @@ def pretrain(
 
     ckpt_path = out / "checkpoint.safetensors"
     start_epoch, elapsed = 0, 0.0
-    if cfg.init is not None and not ckpt_path.is_file():
-        _start_from(decoder, codes, cfg, names)
+    if init is not None and not ckpt_path.is_file():
+        decoder.load_state_dict(init.decoder.state_dict())
+        with torch.no_grad():
+            codes.copy_(init.latents)
     if ckpt_path.is_file():
         tensors, meta = load_checkpoint(ckpt_path)
         if resume_key(meta.get("config", {}), RESUME_IGNORED) != resume_key(json.loads(json.dumps(asdict(cfg))), RESUME_IGNORED) or meta.get("shape_set") != shapes.name:
