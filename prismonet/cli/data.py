@@ -68,18 +68,37 @@ def cmd_clevr(args) -> int:
 def cmd_towers(args) -> int:
     from dataclasses import replace
 
-    from prismonet.data.clevr import BLOCK_TOWERS
+    from prismonet.data.clevr import BLOCK_TOWERS, COLOR_RGB
     from prismonet.data.generate import generate_clevr
+    from prismonet.shapes.library import CLEVR, shape_library
 
     if args.min_objects > args.objects:
         raise ValueError(f"--min-objects ({args.min_objects}) must not exceed --objects ({args.objects})")
     towers = replace(BLOCK_TOWERS.towers, max_towers=args.max_towers)
     cfg = replace(BLOCK_TOWERS, num_objects=args.objects, min_objects=args.min_objects, image_size=args.size, towers=towers,
-                  area_half=BLOCK_TOWERS.area_half if args.max_towers == 1 else max(BLOCK_TOWERS.area_half, 0.6 * args.max_towers))
+                  area_half=BLOCK_TOWERS.area_half if args.max_towers == 1 else max(BLOCK_TOWERS.area_half, 0.6 * args.max_towers),
+                  randomize=_randomize(args), cast_shadows=args.shadows)
+    if args.shapes != CLEVR:  # stacked blocks of a block set (prismonet.data.stacks), in every CLEVR colour
+        lib = shape_library(args.shapes)
+        if lib.own_colors:
+            raise ValueError(f"--shapes {args.shapes}: not a block set (its models keep their own colours); make one with "
+                             "`prismonet shapes blocks --out FOLDER`")
+        cfg = replace(cfg, shapes=args.shapes, towers=replace(towers, colors=tuple(range(len(COLOR_RGB)))),
+                      scale_range=BLOCK_SCALES, area_half=args.area if args.area is not None else cfg.area_half)
+    else:
+        if cfg.randomize is not None:
+            raise ValueError("--randomize: only with --shapes (a block set); the cube towers keep Lerer et al.'s fixed camera and look")
+        if args.area is not None:
+            cfg = replace(cfg, area_half=args.area)
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
-    print(f"wrote {n} block-tower scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s")
+    kind = "block-tower" if args.shapes == CLEVR else "stacked-block"
+    print(f"wrote {n} {kind} scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s")
     return 0
+
+
+BLOCK_SCALES = (0.3, 0.65)
+"""Scales of the blocks of ``data towers --shapes``: a block's longest half-extent in world units."""
 
 
 def cmd_sheet(args) -> int:
@@ -166,13 +185,7 @@ def _add_clevr(dsub) -> None:
     p.add_argument("--random-height", action="store_true", help="heights in [-1.5, 1.5], lowered ground")
     p.add_argument("--full-rotation", action="store_true", help="uniformly random 3-D rotations")
     p.add_argument("--camera-jitter", type=arg_float(0, 5), default=0.0, help="uniform per-axis camera jitter")
-    p.add_argument("--shadows", action="store_true", help="objects cast soft shadows from the light (beyond the paper; "
-                                                           "the same scenes as without)")
-    p.add_argument("--randomize", action="store_true",
-                   help="per scene: ground colour, light direction and ambient level, camera distance, elevation, heading, "
-                        "look-at point and focal length (RandomizeConfig's ranges; for the real-tabletop model)")
-    p.add_argument("--randomize-range", action="append", metavar="NAME=LO,HI",
-                   help="another range for one of RandomizeConfig's draws, e.g. focal_scale=0.8,1.8 (repeatable; implies --randomize)")
+    _look(p)
     p.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture': "
                                                      "its meshes, in their own colours")
     p.add_argument("--shape-split", choices=("seen", "unseen"), default="seen", help="which models of an imported folder")
@@ -192,14 +205,30 @@ def _common(p) -> None:
 
 
 def _add_towers(dsub) -> None:
-    from prismonet.files import arg_int
+    from prismonet.files import arg_float, arg_int
 
-    p = dsub.add_parser("towers", help="generate block-tower scenes (stacked cubes, Lerer et al.'s style; packed format)")
-    p.add_argument("--objects", type=arg_int(1, 12), default=4, help="most cubes per scene (default 4)")
-    p.add_argument("--min-objects", type=arg_int(1, 12), default=2, help="fewest cubes per scene (default 2)")
-    p.add_argument("--max-towers", type=arg_int(1, 4), default=1, help="towers per scene, uniform in 1..N (default 1)")
+    p = dsub.add_parser("towers", help="generate block-tower scenes (stacked cubes, Lerer et al.'s style, or stacked blocks "
+                                       "of a block set; packed format)")
+    p.add_argument("--objects", type=arg_int(1, 12), default=4, help="most blocks per scene (default 4)")
+    p.add_argument("--min-objects", type=arg_int(1, 12), default=2, help="fewest blocks per scene (default 2)")
+    p.add_argument("--max-towers", type=arg_int(1, 6), default=1, help="towers per scene, uniform in 1..N (default 1)")
+    p.add_argument("--shapes", default="clevr", help="'clevr' (default: equal cubes) or a block set made by "
+                                                     "'shapes blocks': stacks of its boxes, hexagonal prisms and wedges")
+    p.add_argument("--area", type=arg_float(0.1, 100, positive=True), help="tower bases in [-A, A]^2 (default: by the tower count)")
     _common(p)
+    _look(p)
     p.set_defaults(func=cmd_towers, outputs=[("out", "new_dir")])
+
+
+def _look(p) -> None:
+    """Shadows and the randomised look (``RandomizeConfig``), shared by ``data clevr`` and ``data towers``."""
+    p.add_argument("--shadows", action="store_true", help="objects cast soft shadows from the light (beyond the paper; "
+                                                           "the same scenes as without)")
+    p.add_argument("--randomize", action="store_true",
+                   help="per scene: ground colour, light direction and ambient level, camera distance, elevation, heading, "
+                        "look-at point and focal length (RandomizeConfig's ranges; for the real-tabletop model)")
+    p.add_argument("--randomize-range", action="append", metavar="NAME=LO,HI",
+                   help="another range for one of RandomizeConfig's draws, e.g. focal_scale=0.8,1.8 (repeatable; implies --randomize)")
 
 
 def add_parsers(sub) -> None:

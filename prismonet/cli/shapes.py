@@ -80,6 +80,15 @@ def cmd_import_furniture(args) -> int:
     return 0
 
 
+def cmd_blocks(args) -> int:
+    from prismonet.shapes.blocks import write_blocks
+
+    r = write_blocks(args.out)
+    cats = sorted({m["category"] for m in r["models"]})
+    print(f"wrote {len(r['models'])} blocks ({', '.join(cats)}) to {args.out}")
+    return 0
+
+
 def add_parsers(sub) -> None:
     from prismonet.files import MAX_MESH_RESOLUTION, arg_int
     from prismonet.shapes.furniture import MIN_FACES as MIN_IMPORT_FACES
@@ -95,10 +104,13 @@ def add_parsers(sub) -> None:
     imp.add_argument("--seed", type=int, default=0, help="seed of the seen / unseen split")
     imp.add_argument("--quiet", action="store_true")
     imp.set_defaults(func=cmd_import_furniture, outputs=[("out", "dir")])
+    blk = ssub.add_parser("blocks", help="write the wooden-block shape set (boxes, hexagonal prisms, wedges) as an import folder")
+    blk.add_argument("--out", required=True, help="new folder for the PLY meshes and models.json")
+    blk.set_defaults(func=cmd_blocks, outputs=[("out", "new_dir")])
     pre = ssub.add_parser("pretrain", help="pre-train the auto-decoder on a shape set (resumable)")
     pre.add_argument("--out", required=True, help="run folder; rerunning resumes from its checkpoint")
     pre.add_argument("--config", help="JSON file with PretrainConfig fields")
-    pre.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture' (its seen models)")
+    pre.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture' or 'shapes blocks' (its seen models)")
     pre.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. decoder.width=128")
     pre.add_argument("--resolution", type=arg_int(8, MAX_MESH_RESOLUTION), default=64, help="marching-cubes resolution of the quality check")
     pre.add_argument("--no-eval", action="store_true")

@@ -19,6 +19,7 @@ import numpy as np
 from prismonet.data.clevr import GENERATOR_VERSION, ClevrConfig, check_placement_feasible, clevr_camera, sample_scene
 from prismonet.data.errors import OutputDirError
 from prismonet.data.scenes import empty_scene_arrays
+from prismonet.shapes.library import CLEVR
 
 DEFAULT_SPLIT = (9000, 1000, 2500)
 SPLIT_NAMES = ("train", "val", "test")
@@ -52,15 +53,24 @@ def _remove_stale_partials(out: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
+def generator_name(cfg: ClevrConfig) -> str:
+    """``"clevr"`` (scattered objects), ``"towers"`` (stacked Clevr cubes) or ``"stacks"`` (stacked blocks of a
+    block set, ``prismonet.data.stacks``)."""
+    if cfg.towers is None:
+        return "clevr"
+    return "towers" if cfg.shapes == CLEVR else "stacks"
+
+
 def render_range(cfg_dict: dict, seed: int, start: int, stop: int) -> dict[str, np.ndarray]:
     """Sample and render scenes ``start..stop-1`` (runs in worker processes)."""
     from prismonet.data.raycast_gt import render_scene, world_rays
 
+    from prismonet.data.stacks import sample_stacks
     from prismonet.data.towers import sample_towers, tower_camera
 
     cfg = ClevrConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg_dict.items()})
     camera = tower_camera(cfg) if cfg.towers is not None else clevr_camera(cfg)
-    sample = sample_towers if cfg.towers is not None else sample_scene
+    sample = {"clevr": sample_scene, "towers": sample_towers, "stacks": sample_stacks}[generator_name(cfg)]
     out = empty_scene_arrays(stop - start, cfg.image_size, cfg.image_size, cfg.num_objects)
     rays = None
     for j, i in enumerate(range(start, stop)):
@@ -159,7 +169,7 @@ def generate_clevr(
                         arrays[k][a:b] = part[k]
                     bar.update(b - a)
         bar.close()
-        meta = {"generator": "clevr" if cfg.towers is None else "towers", "generator_version": GENERATOR_VERSION,
+        meta = {"generator": generator_name(cfg), "generator_version": GENERATOR_VERSION,
                 "config": cfg_dict, "seed": seed}
         return write_dataset(out, arrays, split, meta, t0)
     finally:

@@ -67,7 +67,7 @@ def tower_stands(xy: np.ndarray, yaw: np.ndarray, s: float, margin: float) -> bo
     return True
 
 
-def _deal(rng: np.random.Generator, n: int, towers: int) -> list[int]:
+def deal(rng: np.random.Generator, n: int, towers: int) -> list[int]:
     """``n`` cubes into ``towers`` non-empty towers, uniformly over the ways to cut the row of cubes."""
     cuts = np.sort(rng.choice(np.arange(1, n), size=towers - 1, replace=False)) if towers > 1 else np.array([], int)
     return np.diff(np.concatenate([[0], cuts, [n]])).astype(int).tolist()
@@ -100,7 +100,7 @@ def sample_towers(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | N
     lo = cfg.num_objects if cfg.min_objects is None else cfg.min_objects
     n = int(rng.integers(max(lo, 1), cfg.num_objects + 1))
     s = float(rng.uniform(*cfg.scale_range))
-    heights = _deal(rng, n, int(rng.integers(1, min(t.max_towers, n) + 1)))
+    heights = deal(rng, n, int(rng.integers(1, min(t.max_towers, n) + 1)))
     for _ in range(MAX_TOWER_TRIES):
         towers, discs = [], []
         for h in heights:

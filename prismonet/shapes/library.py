@@ -30,11 +30,14 @@ class ShapeLibrary:
     categories: tuple[str, ...]
     files: tuple[str, ...] = ()
     """The PLY of each shape (imports only)."""
+    recolor: bool = False
+    """An import whose objects take a CLEVR colour each, as Clevr shapes do (``models.json``'s
+    ``"own_colors": false``, e.g. ``prismonet.shapes.blocks``)."""
 
     @property
     def own_colors(self) -> bool:
         """Whether the shapes carry their own colours (imports) rather than taking a CLEVR colour."""
-        return self.name != CLEVR
+        return self.name != CLEVR and not self.recolor
 
     def mesh(self, shape_id: int) -> tuple[np.ndarray, np.ndarray]:
         """``(vertices (V, 3) float64, faces (F, 3) int32)`` in the object frame."""
@@ -77,7 +80,8 @@ def shape_library(name: str = CLEVR, split: str = "seen") -> ShapeLibrary:
         c = m.get("category", record["setting"])
         specs.append(ShapeSpec(i, c, cats.index(c), count[c], tuple(float(h) for h in m["half_extents"])))
         count[c] += 1
-    return ShapeLibrary(str(folder), split, tuple(specs), cats, tuple(str(folder / m["file"]) for m in models))
+    return ShapeLibrary(str(folder), split, tuple(specs), cats, tuple(str(folder / m["file"]) for m in models),
+                        recolor=not record.get("own_colors", True))
 
 
 def copy_library(src: str | Path, out: str | Path) -> dict:

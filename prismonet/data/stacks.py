@@ -1,0 +1,151 @@
+"""Stacks of mixed wooden blocks (``prismonet.shapes.blocks``): the block-tower setting with the blocks of a
+real block photo (boxes of many proportions, hexagonal prisms, wedges) instead of equal cubes.
+
+A scene holds ``min_objects .. num_objects`` blocks (uniform), dealt into ``1 .. max_towers`` stacks
+(``prismonet.data.towers``' rule, dealt again where a stack would be taller than ``MAX_LEVELS`` or the stacks do not
+fit apart; a stack of one block stands on the ground). Each block has its own shape,
+scale and CLEVR colour. A block above another rests on the lower one's flat top (only boxes and hexagonal
+prisms have one; a wedge can only crown a stack), its centre shifted by up to ``offset`` x the lower top's
+half-extents, and turned freely. A stack is kept only when it balances: for every block, the centre of mass of
+it and the blocks above (masses by volume) lies inside the top face it rests on, shrunk by ``margin`` towards
+that face's centre. Stacks keep ``min_gap`` apart. With ``cfg.randomize``, each scene draws its camera, ground
+colour and light as the Clevr generator's (``prismonet.data.clevr.sample_conditions``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from prismonet.data.clevr import ClevrConfig, ObjectSpec, SceneSpec, sample_conditions
+from prismonet.data.errors import PlacementError
+from prismonet.data.towers import MAX_TOWER_TRIES, deal
+from prismonet.geometry.camera import Camera
+from prismonet.shapes.blocks import top_face, volume
+from prismonet.shapes.library import shape_library
+
+MAX_LEVELS = 3
+"""Blocks per stack at most (a deal with a taller stack is dealt again): a real toy-block scene, such as the shipped
+``blox.jpg`` (a slab carrying a board and a bar), is rarely taller, and a taller stack leaves the camera's view."""
+
+
+def _rot(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+def inside_convex(p: np.ndarray, poly: np.ndarray) -> bool:
+    """Whether the point ``p`` (2,) lies in the convex polygon ``poly (n, 2)`` (counter-clockwise), edges included."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    cross = (b[:, 0] - a[:, 0]) * (p[1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (p[0] - a[:, 0])
+    return bool((cross >= -1e-12).all())
+
+
+def world_top(category: str, half_extents, scale: float, xy: np.ndarray, yaw: float) -> np.ndarray | None:
+    """A block's flat top in world xy ``(n, 2)``, or ``None`` (a wedge)."""
+    top = top_face(category, half_extents)
+    return None if top is None else (scale * top) @ _rot(yaw).T + xy
+
+
+def stack_balances(blocks: list[dict], margin: float) -> bool:
+    """Whether a stack (bottom to top; each block a dict with ``category``, ``half_extents``, ``scale``, ``xy``,
+    ``yaw``) balances: for each block above the first, the centre of mass of it and every block above lies
+    inside the top of the block below, shrunk by ``margin`` towards that top's centre."""
+    mass = np.array([volume(b["category"], b["half_extents"]) * b["scale"] ** 3 for b in blocks])
+    xy = np.array([b["xy"] for b in blocks])
+    for i in range(1, len(blocks)):
+        below = blocks[i - 1]
+        top = world_top(below["category"], below["half_extents"], below["scale"], np.asarray(below["xy"]), below["yaw"])
+        if top is None:
+            return False
+        com = (mass[i:, None] * xy[i:]).sum(0) / mass[i:].sum()
+        centre = top.mean(0)
+        if not inside_convex(com, centre + (1.0 - margin) * (top - centre)):
+            return False
+    return True
+
+
+def _one_stack(rng: np.random.Generator, cfg: ClevrConfig, height: int) -> list[dict]:
+    """A balancing stack of ``height`` blocks with its base in the placement area."""
+    lib = shape_library(cfg.shapes, cfg.shape_split)
+    flat = [s for s in lib.specs if top_face(s.category, s.half_extents) is not None]
+    if height > 1 and not flat:
+        raise PlacementError(f"{cfg.shapes}: no block with a flat top, so nothing can be stacked")
+    t = cfg.towers
+    for _ in range(MAX_TOWER_TRIES):
+        blocks: list[dict] = []
+        for level in range(height):
+            pool = flat if level < height - 1 else lib.specs
+            spec = pool[int(rng.integers(len(pool)))]
+            scale = float(rng.uniform(*cfg.scale_range))
+            yaw = float(rng.uniform(-math.pi, math.pi))
+            if level == 0:
+                xy = rng.uniform(-cfg.area_half, cfg.area_half, 2)
+                z = scale * spec.half_extents[2]
+            else:
+                b = blocks[-1]
+                reach = b["scale"] * np.asarray(b["half_extents"][:2]) * t.offset
+                xy = np.asarray(b["xy"]) + _rot(b["yaw"]) @ (rng.uniform(-1.0, 1.0, 2) * reach)
+                z = b["z"] + b["scale"] * b["half_extents"][2] + scale * spec.half_extents[2]
+            blocks.append({"spec": spec, "category": spec.category, "half_extents": spec.half_extents, "scale": scale,
+                           "xy": xy, "yaw": yaw, "z": z})
+        if stack_balances(blocks, t.margin):
+            return blocks
+    raise PlacementError(f"could not build a balancing stack of {height} blocks in {MAX_TOWER_TRIES} tries "
+                         f"(offset {t.offset}, margin {t.margin}: lower the offset)")
+
+
+PLACE_TRIES = 20
+"""Layouts tried for one deal of the blocks into stacks before it is dealt again."""
+
+
+def _place(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int]) -> list[list[dict]] | None:
+    """Stacks of the given heights whose footprints keep ``cfg.min_gap`` apart, or ``None`` after ``PLACE_TRIES``."""
+    for _ in range(PLACE_TRIES):
+        stacks, discs = [], []
+        for h in heights:
+            blocks = _one_stack(rng, cfg, h)
+            centre = np.asarray(blocks[0]["xy"])
+            radius = max(float(np.linalg.norm(np.asarray(b["xy"]) - centre)) + b["scale"] * b["spec"].footprint_radius()
+                         for b in blocks)
+            if any(np.linalg.norm(centre - c) < radius + r + cfg.min_gap for c, r in discs):
+                break
+            stacks.append(blocks)
+            discs.append((centre, radius))
+        if len(stacks) == len(heights):
+            return stacks
+    return None
+
+
+def sample_stacks(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | None = None) -> SceneSpec:
+    """Sample one scene of stacked blocks (``cfg.towers`` set, ``cfg.shapes`` a block set). All randomness
+    comes from ``rng``."""
+    t = cfg.towers
+    if t is None:
+        raise ValueError("sample_stacks: cfg.towers is not set")
+    light = ground = None
+    if cfg.randomize is not None:
+        camera, ground, light = sample_conditions(rng, cfg)
+    if camera is None:
+        raise ValueError("sample_stacks: give a camera, or set cfg.randomize")
+    lo = cfg.num_objects if cfg.min_objects is None else cfg.min_objects
+    n = int(rng.integers(max(lo, 1), cfg.num_objects + 1))
+    for _ in range(MAX_TOWER_TRIES):  # a new deal each try: fewer, taller stacks fit where many do not
+        heights = deal(rng, n, int(rng.integers(1, min(t.max_towers, n) + 1)))
+        if max(heights) > MAX_LEVELS:
+            continue
+        stacks = _place(rng, cfg, heights)
+        if stacks is not None:
+            break
+    else:
+        raise PlacementError(f"could not place {n} blocks in stacks of at most {MAX_LEVELS}, apart in "
+                             f"[-{cfg.area_half}, {cfg.area_half}]^2 (a larger --area, or fewer blocks)")
+    objects = []
+    for blocks in stacks:
+        for b in blocks:
+            color = int(t.colors[int(rng.integers(len(t.colors)))])
+            objects.append(ObjectSpec(b["spec"].shape_id, b["spec"].category_id, color, b["scale"],
+                                      (float(b["xy"][0]), float(b["xy"][1]), float(b["z"])), b["yaw"],
+                                      shapes=cfg.shapes, shape_split=cfg.shape_split))
+    return SceneSpec(tuple(objects), camera, cfg.ground_z, cfg.ground_color if ground is None else ground, light=light)
