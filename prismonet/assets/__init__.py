@@ -93,6 +93,7 @@ MODELS = {
     "tabletop": "tabletop_model",
     "tabletop_anchor": "tabletop_anchor_model",
     "tabletop_keep": "tabletop_keep_model",
+    "blocks": "blocks_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -102,10 +103,12 @@ PRIORS = {
     "cars": "cars_prior",
     "chairs": "chairs_prior",
     "tableware": "tableware_prior",
+    "blocks": "blocks_prior",
 }
 """Shape priors by name (``ModelConfig.prior``, ``load_prior(NAME)``); ``"shipped"`` is ``"clevr"``. ``tableware`` is
 the paper's ShapeNet "tabletop" setting (mugs, bottles, cans; ``data/furniture/tabletop``): the name ``tabletop``
-belongs to the randomised real-tabletop Clevr setting of ``configs/tabletop.json``."""
+belongs to the randomised real-tabletop Clevr setting of ``configs/tabletop.json``. ``blocks``: the wooden blocks of
+``prismonet shapes blocks`` (``prismonet.shapes.blocks``; made here, no third-party data), D_sh 8."""
 
 
 MODEL_SAMPLES = {
@@ -133,6 +136,7 @@ MODEL_SAMPLES = {
     "tabletop": "samples/tabletop",
     "tabletop_anchor": "samples/tabletop",
     "tabletop_keep": "samples/tabletop",
+    "blocks": "samples/stacks",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 

@@ -16,6 +16,16 @@ def _split(text: str) -> tuple[int, int, int]:
     return parts  # type: ignore[return-value]
 
 
+def _scale_range(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(p) for p in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LO,HI like 0.3,0.65, got {text!r}") from None
+    if not 0 < lo <= hi:
+        raise argparse.ArgumentTypeError(f"expected 0 < LO <= HI, got {text!r}")
+    return lo, hi
+
+
 def _scene_split(args) -> tuple[int, int, int]:
     from prismonet.data.generate import DEFAULT_SPLIT
 
@@ -83,13 +93,16 @@ def cmd_towers(args) -> int:
         if lib.own_colors:
             raise ValueError(f"--shapes {args.shapes}: not a block set (its models keep their own colours); make one with "
                              "`prismonet shapes blocks --out FOLDER`")
+        scales = BLOCK_SCALES if args.scale is None else args.scale
         cfg = replace(cfg, shapes=args.shapes, towers=replace(towers, colors=tuple(range(len(COLOR_RGB)))),
-                      scale_range=BLOCK_SCALES, area_half=args.area if args.area is not None else cfg.area_half)
+                      scale_range=scales, area_half=args.area if args.area is not None else cfg.area_half)
     else:
         if cfg.randomize is not None:
             raise ValueError("--randomize: only with --shapes (a block set); the cube towers keep Lerer et al.'s fixed camera and look")
         if args.area is not None:
             cfg = replace(cfg, area_half=args.area)
+        if args.scale is not None:
+            raise ValueError("--scale: only with --shapes (a block set); the cube towers keep one scale range")
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
     kind = "block-tower" if args.shapes == CLEVR else "stacked-block"
@@ -215,6 +228,7 @@ def _add_towers(dsub) -> None:
     p.add_argument("--shapes", default="clevr", help="'clevr' (default: equal cubes) or a block set made by "
                                                      "'shapes blocks': stacks of its boxes, hexagonal prisms and wedges")
     p.add_argument("--area", type=arg_float(0.1, 100, positive=True), help="tower bases in [-A, A]^2 (default: by the tower count)")
+    p.add_argument("--scale", type=_scale_range, help="with --shapes: the blocks' scales, uniform in LO,HI (default 0.3,0.65)")
     _common(p)
     _look(p)
     p.set_defaults(func=cmd_towers, outputs=[("out", "new_dir")])
