@@ -75,6 +75,10 @@ def cmd_clevr(args) -> int:
     return 0
 
 
+BLOCK_SCALES = (0.3, 0.65)
+"""Scales of the blocks of ``data towers --shapes``: a block's longest half-extent in world units."""
+
+
 def cmd_towers(args) -> int:
     from dataclasses import replace
 
@@ -108,10 +112,6 @@ def cmd_towers(args) -> int:
     kind = "block-tower" if args.shapes == CLEVR else "stacked-block"
     print(f"wrote {n} {kind} scenes {meta['counts']} to {args.out} in {meta['seconds']:.1f} s")
     return 0
-
-
-BLOCK_SCALES = (0.3, 0.65)
-"""Scales of the blocks of ``data towers --shapes``: a block's longest half-extent in world units."""
 
 
 def cmd_sheet(args) -> int:
