@@ -94,6 +94,7 @@ MODELS = {
     "tabletop_anchor": "tabletop_anchor_model",
     "tabletop_keep": "tabletop_keep_model",
     "blocks": "blocks_model",
+    "blocks_keep": "blocks_keep_model",
 }
 """Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
 
@@ -137,6 +138,7 @@ MODEL_SAMPLES = {
     "tabletop_anchor": "samples/tabletop",
     "tabletop_keep": "samples/tabletop",
     "blocks": "samples/stacks",
+    "blocks_keep": "samples/stacks",
 }
 """The shipped test scenes of each model's setting (``demo --model NAME``); any other model: ``samples/clevr3``."""
 
