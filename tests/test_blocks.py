@@ -145,3 +145,28 @@ def test_stacked_block_scenes_render_with_ground_truth(tmp_path):
             tops = [a["obj_position"][j, i, 2] + a["obj_scale"][j, i] * lib.specs[int(a["obj_shape"][j, i])].half_extents[2]
                     for i in range(n) if i != k]
             assert abs(foot) < 1e-5 or min(abs(foot - t) for t in tops) < 1e-5
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--scale", "0.3,0.6"], "--scale"),                   # the cube towers keep one scale range
+    (["--shapes", "/nonexistent/blocks"], "shape library"),  # no such set
+    (["--shapes", "OWN"], "not a block set"),              # an import whose models keep their own colours
+])
+def test_towers_cli_refuses_bad_block_options_in_one_line(tmp_path, capsys, args, words):
+    from prismonet.cli import main
+
+    write_blocks(tmp_path / "own")
+    record = json.loads((tmp_path / "own" / "models.json").read_text())
+    (tmp_path / "own" / "models.json").write_text(json.dumps({**record, "own_colors": True}))
+    args = [str(tmp_path / "own") if a == "OWN" else a for a in args]
+    assert main(["data", "towers", *args, "--out", str(tmp_path / "t")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0] and not (tmp_path / "t").exists()
+
+
+def test_towers_cli_refuses_a_bad_scale_range(capsys):
+    from prismonet.cli import main
+
+    assert main(["data", "towers", "--shapes", "data/blocks", "--scale", "0.6,0.3", "--out", "/tmp/never"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "0 < LO <= HI" in err[0]

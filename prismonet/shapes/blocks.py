@@ -66,19 +66,13 @@ def _prism(outline: np.ndarray, axis: int, half: float):
 
 
 def block_mesh(category: str, half_extents) -> tuple[np.ndarray, np.ndarray]:
-    """Watertight mesh ``(vertices (V, 3), faces (F, 3))`` of a block, centred, in its object frame."""
+    """Watertight mesh ``(vertices (V, 3), faces (F, 3))`` of a block, centred, in its object frame: a box or a
+    hexagonal prism is its top face extruded down to ``-h_z``; a wedge, its triangle in the xz plane along y."""
     hx, hy, hz = (float(h) for h in half_extents)
-    if category == "box":
-        outline = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
-        return _prism(outline, 2, hz)
-    if category == "hexprism":
-        a = np.arange(6) * math.pi / 3
-        outline = np.stack([hx * np.cos(a), hx * np.sin(a)], 1)  # corner on +x; y reaches hx * cos(30 deg)
-        return _prism(outline, 2, hz)
     if category == "wedge":
         outline = np.array([[-hx, -hz], [hx, -hz], [0.0, hz]])  # (x, z): base on the ground, ridge on top
         return _prism(outline, 1, hy)
-    raise ValueError(f"unknown block category {category!r}; expected box, hexprism or wedge")
+    return _prism(top_face(category, half_extents), 2, hz)
 
 
 def top_face(category: str, half_extents) -> np.ndarray | None:
