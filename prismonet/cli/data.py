@@ -84,6 +84,7 @@ def cmd_towers(args) -> int:
 
     from prismonet.data.clevr import BLOCK_TOWERS, COLOR_RGB
     from prismonet.data.generate import generate_clevr
+    from prismonet.data.stacks import platforms
     from prismonet.shapes.library import CLEVR, shape_library
 
     if args.min_objects > args.objects:
@@ -98,8 +99,12 @@ def cmd_towers(args) -> int:
             raise ValueError(f"--shapes {args.shapes}: not a block set (its models keep their own colours); make one with "
                              "`prismonet shapes blocks --out FOLDER`")
         scales = BLOCK_SCALES if args.scale is None else args.scale
-        cfg = replace(cfg, shapes=args.shapes, towers=replace(towers, colors=tuple(range(len(COLOR_RGB)))),
-                      scale_range=scales, area_half=args.area if args.area is not None else cfg.area_half)
+        towers = replace(towers, colors=tuple(range(len(COLOR_RGB))), platform_share=args.platforms,
+                         platform_scale=towers.platform_scale if args.platform_scale is None else args.platform_scale)
+        cfg = replace(cfg, shapes=args.shapes, towers=towers, scale_range=scales,
+                      area_half=args.area if args.area is not None else cfg.area_half)
+        if args.platforms > 0 and not platforms(cfg):
+            raise ValueError(f"--platforms: {args.shapes} has no wide, low block with a flat top to serve as a platform")
     else:
         if cfg.randomize is not None:
             raise ValueError("--randomize: only with --shapes (a block set); the cube towers keep Lerer et al.'s fixed camera and look")
@@ -107,6 +112,8 @@ def cmd_towers(args) -> int:
             cfg = replace(cfg, area_half=args.area)
         if args.scale is not None:
             raise ValueError("--scale: only with --shapes (a block set); the cube towers keep one scale range")
+        if args.platforms > 0 or args.platform_scale is not None:
+            raise ValueError("--platforms / --platform-scale: only with --shapes (a block set); the cube towers have no platform")
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
     n = sum(meta["counts"].values())
     kind = "block-tower" if args.shapes == CLEVR else "stacked-block"
@@ -229,6 +236,11 @@ def _add_towers(dsub) -> None:
                                                      "'shapes blocks': stacks of its boxes, hexagonal prisms and wedges")
     p.add_argument("--area", type=arg_float(0.1, 100, positive=True), help="tower bases in [-A, A]^2 (default: by the tower count)")
     p.add_argument("--scale", type=_scale_range, help="with --shapes: the blocks' scales, uniform in LO,HI (default 0.3,0.65)")
+    p.add_argument("--platforms", type=arg_float(0, 1), default=0.0,
+                   help="with --shapes: the share of scenes built around a platform, a wide flat block carrying one or "
+                        "two short stacks (default 0)")
+    p.add_argument("--platform-scale", type=_scale_range, help="with --platforms: the platform's scale, uniform in LO,HI "
+                                                                "(default 0.9,1.2)")
     _common(p)
     _look(p)
     p.set_defaults(func=cmd_towers, outputs=[("out", "new_dir")])

@@ -60,9 +60,20 @@ class TowerConfig:
     """CLEVR colour ids the cubes take (default: red, blue, green, yellow: saturated, as Lerer's)."""
     shape_id: int = 18
     """The Clevr shape of every block (18: the cube with equal sides)."""
+    platform_share: float = 0.0
+    """Stacked blocks of a block set only (``prismonet.data.stacks``): the share of scenes (of two blocks or more) built
+    around a platform, a wide flat block at ``platform_scale`` carrying one or two short stacks, as the slab of a
+    real block photo carries a board, a bar and a cube."""
+    platform_scale: tuple[float, float] = (0.9, 1.2)
+    """A platform's scale, uniform in this range (the other blocks keep ``ClevrConfig.scale_range``)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "colors", tuple(int(c) for c in self.colors))
+        object.__setattr__(self, "platform_scale", tuple(float(x) for x in self.platform_scale))
+        lo, hi = self.platform_scale
+        if not (0.0 <= self.platform_share <= 1.0 and 0.0 < lo <= hi):
+            raise ValueError(f"towers: platform_share must be in [0, 1] and platform_scale 0 < LO <= HI, "
+                             f"got {self.platform_share}, {self.platform_scale}")
         if self.max_towers < 1:
             raise ValueError(f"towers.max_towers must be >= 1, got {self.max_towers}")
         if not (0 <= self.offset < 1 and 0 <= self.margin < 1 and self.yaw_jitter_deg >= 0):

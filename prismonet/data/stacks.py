@@ -8,7 +8,10 @@ scale and CLEVR colour. A block above another rests on the lower one's flat top 
 prisms have one; a wedge can only crown a stack), its centre shifted by up to ``offset`` x the lower top's
 half-extents, and turned freely. A stack is kept only when it balances: for every block, the centre of mass of
 it and the blocks above (masses by volume) lies inside the top face it rests on, shrunk by ``margin`` towards
-that face's centre. Stacks keep ``min_gap`` apart. With ``cfg.randomize``, each scene draws its camera, ground
+that face's centre. Stacks keep ``min_gap`` apart. With ``cfg.towers.platform_share``, that share of scenes is
+built around a platform: a wide, low block (``platforms``) at ``cfg.towers.platform_scale``, carrying one or two short
+stacks (1 to 4 blocks in all), as the slab of a real block photo carries a board, a
+bar and a cube; the other blocks stand on the ground around it. With ``cfg.randomize``, each scene draws its camera, ground
 colour and light as the Clevr generator's (``prismonet.data.clevr.sample_conditions``).
 """
 
@@ -66,8 +69,11 @@ def stack_balances(blocks: list[dict], margin: float) -> bool:
     return True
 
 
-def _one_stack(rng: np.random.Generator, cfg: ClevrConfig, height: int) -> list[dict]:
-    """A balancing stack of ``height`` blocks with its base in the placement area."""
+def _one_stack(rng: np.random.Generator, cfg: ClevrConfig, height: int, base: dict | None = None,
+               spread: float | None = None) -> list[dict]:
+    """A balancing stack of ``height`` blocks with its base in the placement area, or, given ``base`` (a block with a
+    flat top), resting on that block's top, shifted by up to ``spread`` x its half-extents (the stack and ``base``
+    together balance)."""
     lib = shape_library(cfg.shapes, cfg.shape_split)
     flat = [s for s in lib.specs if top_face(s.category, s.half_extents) is not None]
     if height > 1 and not flat:
@@ -80,40 +86,96 @@ def _one_stack(rng: np.random.Generator, cfg: ClevrConfig, height: int) -> list[
             spec = pool[int(rng.integers(len(pool)))]
             scale = float(rng.uniform(*cfg.scale_range))
             yaw = float(rng.uniform(-math.pi, math.pi))
-            if level == 0:
+            below = blocks[-1] if blocks else base
+            if below is None:
                 xy = rng.uniform(-cfg.area_half, cfg.area_half, 2)
                 z = scale * spec.half_extents[2]
             else:
-                b = blocks[-1]
-                reach = b["scale"] * np.asarray(b["half_extents"][:2]) * t.offset
-                xy = np.asarray(b["xy"]) + _rot(b["yaw"]) @ (rng.uniform(-1.0, 1.0, 2) * reach)
-                z = b["z"] + b["scale"] * b["half_extents"][2] + scale * spec.half_extents[2]
+                frac = t.offset if blocks else spread
+                reach = below["scale"] * np.asarray(below["half_extents"][:2]) * frac
+                xy = np.asarray(below["xy"]) + _rot(below["yaw"]) @ (rng.uniform(-1.0, 1.0, 2) * reach)
+                z = below["z"] + below["scale"] * below["half_extents"][2] + scale * spec.half_extents[2]
             blocks.append({"spec": spec, "category": spec.category, "half_extents": spec.half_extents, "scale": scale,
                            "xy": xy, "yaw": yaw, "z": z})
-        if stack_balances(blocks, t.margin):
+        if stack_balances(([] if base is None else [base]) + blocks, t.margin):
             return blocks
     raise PlacementError(f"could not build a balancing stack of {height} blocks in {MAX_TOWER_TRIES} tries "
                          f"(offset {t.offset}, margin {t.margin}: lower the offset)")
+
+
+PLATFORM_SPREAD = 0.6
+"""How far a stack on a platform may stand from the platform's centre, in the platform's half-extents."""
+
+PLATFORM_MAX_HEIGHT = 0.3
+"""A platform is a block whose flat top is wide and low: half-height at most this share of its longest half-extent,
+and a top at least half as deep as it is wide."""
+
+
+def platforms(cfg: ClevrConfig) -> list:
+    """The block set's shapes that may serve as a platform (``PLATFORM_MAX_HEIGHT``)."""
+    lib = shape_library(cfg.shapes, cfg.shape_split)
+    return [s for s in lib.specs if top_face(s.category, s.half_extents) is not None
+            and s.half_extents[2] <= PLATFORM_MAX_HEIGHT * max(s.half_extents[:2])
+            and min(s.half_extents[:2]) >= 0.5 * max(s.half_extents[:2])]
+
+
+def _group_disc(blocks: list[dict]) -> tuple[np.ndarray, float]:
+    """The disc on the ground (centre, radius) that holds a group of blocks' footprints, centred on the first."""
+    centre = np.asarray(blocks[0]["xy"])
+    return centre, max(float(np.linalg.norm(np.asarray(b["xy"]) - centre)) + b["scale"] * b["spec"].footprint_radius()
+                       for b in blocks)
+
+
+def _platform(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int]) -> list[list[dict]] | None:
+    """A platform on the ground carrying stacks of the given heights apart from each other (each balancing on it), or
+    ``None`` after ``PLACE_TRIES`` layouts. The platform is the first stack returned, alone."""
+    pool = platforms(cfg)
+    if not pool:
+        raise PlacementError(f"{cfg.shapes}: no wide, low block with a flat top to serve as a platform")
+    t = cfg.towers
+    for _ in range(PLACE_TRIES):
+        spec = pool[int(rng.integers(len(pool)))]
+        scale = float(rng.uniform(*t.platform_scale))
+        base = {"spec": spec, "category": spec.category, "half_extents": spec.half_extents, "scale": scale,
+                "xy": rng.uniform(-cfg.area_half, cfg.area_half, 2), "yaw": float(rng.uniform(-math.pi, math.pi)),
+                "z": scale * spec.half_extents[2]}
+        stacks, discs = [[base]], []
+        for h in heights:
+            blocks = _one_stack(rng, cfg, h, base=base, spread=PLATFORM_SPREAD)
+            centre, radius = _group_disc(blocks)
+            if any(np.linalg.norm(centre - c) < radius + r + cfg.min_gap for c, r in discs):
+                break
+            stacks.append(blocks)
+            discs.append((centre, radius))
+        if len(stacks) == len(heights) + 1:
+            return stacks
+    return None
 
 
 PLACE_TRIES = 20
 """Layouts tried for one deal of the blocks into stacks before it is dealt again."""
 
 
-def _place(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int]) -> list[list[dict]] | None:
-    """Stacks of the given heights whose footprints keep ``cfg.min_gap`` apart, or ``None`` after ``PLACE_TRIES``."""
+def _place(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int], platform_heights: list[int] | None = None
+           ) -> list[list[dict]] | None:
+    """Stacks of the given heights whose footprints keep ``cfg.min_gap`` apart, or ``None`` after ``PLACE_TRIES``;
+    with ``platform_heights``, first a platform carrying stacks of those heights (``_platform``), kept apart too."""
     for _ in range(PLACE_TRIES):
         stacks, discs = [], []
+        if platform_heights is not None:
+            group = _platform(rng, cfg, platform_heights)
+            if group is None:
+                continue
+            stacks = group
+            discs.append(_group_disc([b for stack in group for b in stack]))
         for h in heights:
             blocks = _one_stack(rng, cfg, h)
-            centre = np.asarray(blocks[0]["xy"])
-            radius = max(float(np.linalg.norm(np.asarray(b["xy"]) - centre)) + b["scale"] * b["spec"].footprint_radius()
-                         for b in blocks)
+            centre, radius = _group_disc(blocks)
             if any(np.linalg.norm(centre - c) < radius + r + cfg.min_gap for c, r in discs):
                 break
             stacks.append(blocks)
             discs.append((centre, radius))
-        if len(stacks) == len(heights):
+        if len(discs) == len(heights) + (platform_heights is not None):
             return stacks
     return None
 
@@ -131,11 +193,22 @@ def sample_stacks(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | N
         raise ValueError("sample_stacks: give a camera, or set cfg.randomize")
     lo = cfg.num_objects if cfg.min_objects is None else cfg.min_objects
     n = int(rng.integers(max(lo, 1), cfg.num_objects + 1))
+    # a platform scene: one block is the platform, 1..4 blocks stand on it in one or two stacks, the rest on the ground
+    # (the draw is made only when platforms are asked for, so scenes without them stay what they were)
+    on_platform = 0
+    if t.platform_share > 0 and n >= 2 and rng.uniform() < t.platform_share:
+        on_platform = int(rng.integers(1, min(n - 1, 4) + 1))
     for _ in range(MAX_TOWER_TRIES):  # a new deal each try: fewer, taller stacks fit where many do not
-        heights = deal(rng, n, int(rng.integers(1, min(t.max_towers, n) + 1)))
-        if max(heights) > MAX_LEVELS:
+        platform_heights = None
+        if on_platform:
+            platform_heights = deal(rng, on_platform, int(rng.integers(1, min(2, on_platform) + 1)))
+            if max(platform_heights) > MAX_LEVELS - 1:
+                continue
+        rest = n - on_platform - (1 if on_platform else 0)
+        heights = deal(rng, rest, int(rng.integers(1, min(t.max_towers, rest) + 1))) if rest else []
+        if heights and max(heights) > MAX_LEVELS:
             continue
-        stacks = _place(rng, cfg, heights)
+        stacks = _place(rng, cfg, heights, platform_heights)
         if stacks is not None:
             break
     else:
