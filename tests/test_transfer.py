@@ -1,6 +1,9 @@
 """Starting a model from one with other latent sizes or outputs (``init_transfer``), or from a narrower one
 (``init_widen``)."""
 
+from dataclasses import replace
+
+import pytest
 import torch
 
 from prismonet.model.config import ModelConfig
@@ -107,3 +110,31 @@ and every new unit gets a
         widen_weights(src, wide)
     with pytest.raises(CheckpointError, match="differ in more than widths"):
         widen_weights(PriSMONet(ModelConfig(channels=(8, 8, 16), fc=(32, 32), bg_channels=(4, 4, 8, 8)), prior=prior), src)
+
+
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_new_position_units_start_at_the_same_positions(frame):
+    from prismonet.geometry.camera import intrinsics_matrix, look_at
+    from prismonet.model.io import remap_position_outputs
+
+    torch.manual_seed(0)
+    src = PriSMONet(ModelConfig(num_slots=3, pose_frame=frame)).eval()
+    with torch.no_grad():  # a head whose position outputs are not near zero, as a trained one
+        src.state_dict()[f"{HEAD}.bias"].normal_(0.0, 1.0)
+    dst = PriSMONet(replace(src.cfg, position_offset=(0.3, -0.2, 0.8), position_scale=(2.0, 1.0, 1.2))).eval()
+    dst.load_state_dict(src.state_dict())
+    rows = remap_position_outputs(dst, src.cfg)
+    first = src.sh_dim + src.cfg.tex_dim
+    assert rows == ([first + 2] if frame == "camera" else [first, first + 1, first + 2])  # the camera frame: the height
+    B = 4
+    K = intrinsics_matrix(80.0, 80.0, 31.5, 31.5)[None].expand(B, 3, 3)
+    T = look_at(torch.tensor([0.0, -10.0, 3.0]), torch.zeros(3))[None].expand(B, 4, 4)
+    x = torch.rand(B, src.encoder.trunk[0].in_channels, 64, 64)
+    with torch.no_grad():
+        a = src.decode_latent(src.encoder(x), K, T, torch.zeros(B))
+        b = dst.decode_latent(dst.encoder(x), K, T, torch.zeros(B))
+    torch.testing.assert_close(b.position, a.position, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(b.scale, a.scale)
+    assert remap_position_outputs(dst, dst.cfg) == []  # the same units: nothing to do
+    with pytest.raises(ValueError, match="refiner"):
+        remap_position_outputs(PriSMONet(replace(dst.cfg, refine_passes=1)), src.cfg)

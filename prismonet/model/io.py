@@ -219,6 +219,32 @@ def anchor_start(model) -> None:
         model.state_dict()[f"{HEAD}.bias"][rows] = 0.0
 
 
+def remap_position_outputs(model, source_cfg) -> list[int]:
+    """Keep the encoder's decoded positions when ``model`` (its ``cfg.position_offset`` / ``position_scale`` new) starts
+    from the weights of a model trained with ``source_cfg``'s: each decoded coordinate ``o + s * raw`` stays what it was,
+    by ``raw' = (s / s') raw + (o - o') / s'`` on the head's position rows. A camera-frame or anchored model decodes only
+    the height (row 2) with them; a world-frame model all three. Returns the rows changed.
+
+    A model with a refiner is refused: its inputs and corrections are in the old units too."""
+    o, s = torch.tensor(source_cfg.position_offset), torch.tensor(source_cfg.position_scale)
+    o2, s2 = torch.tensor(model.cfg.position_offset), torch.tensor(model.cfg.position_scale)
+    own = [2] if model.cfg.pose_frame == "camera" or model.cfg.anchor else [0, 1, 2]
+    axes = [i for i in own if float(o[i]) != float(o2[i]) or float(s[i]) != float(s2[i])]
+    if not axes:
+        return []
+    if model.cfg.refine_passes:
+        raise ValueError("a new position_offset / position_scale for a model with a refiner: its inputs and corrections "
+                         "are in the start model's units; fit the refiner again on the new model instead")
+    first = _head_rows(model)["pose"][0]
+    w, b = model.state_dict()[f"{HEAD}.weight"], model.state_dict()[f"{HEAD}.bias"]
+    with torch.no_grad():
+        for i in axes:
+            k = float(s[i] / s2[i])
+            w[first + i] *= k
+            b[first + i] = k * b[first + i] + float((o[i] - o2[i]) / s2[i])
+    return [first + i for i in axes]
+
+
 def training_camera(model, info: dict):
     """``(Camera, ground_z)`` the model was trained with: from the checkpoint's record, or for a
     checkpoint without one, the default CLEVR camera at the model's image size."""

@@ -339,7 +339,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
     ckpt = run / "checkpoint.safetensors"
     init_weights = None  # the starting weights' fingerprint: names like "shipped" move when a new model ships
     if cfg.init_from is not None and not ckpt.is_file():
-        from prismonet.model.io import load_fitting, load_model, transfer_weights, weights_fingerprint, widen_weights
+        from prismonet.model.io import (load_fitting, load_model, remap_position_outputs, transfer_weights, weights_fingerprint,
+                                        widen_weights)
 
         source = load_model(cfg.init_from)[0]
         init_weights = weights_fingerprint(source)
@@ -359,6 +360,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             anchor_start(model)
             if rank == 0:
                 print(f"init_from {cfg.init_from}: an unanchored model; position outputs zeroed (every slot starts at its anchor)")
+        elif remap_position_outputs(model, source.cfg) and rank == 0:
+            print(f"init_from {cfg.init_from}: position outputs remapped to model.position_offset / position_scale "
+                  f"(the same positions at the start)")
     targets = None
     if cfg.distill is not None and (cfg.loss.w_distill > 0 or cfg.loss.w_keep > 0):
         from prismonet.model.distill import VISIBLE, DistillTargets
