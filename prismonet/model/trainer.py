@@ -60,7 +60,10 @@ class TrainConfig:
     schedule of the steps already taken unchanged."""
     init_from: str | None = None
     """A trained model (run folder or ``.safetensors``) whose weights start the run, e.g. to fine-tune a
-    3-object model on scenes with 4 or 5 objects (the encoder is shared across slots)."""
+    3-object model on scenes with 4 or 5 objects (the encoder is shared across slots). Where ``model.position_offset``
+    / ``position_scale`` differ from that model's (e.g. stacked blocks need taller heights than the tabletop model
+    they start from), its position outputs are remapped so that every slot starts where it was
+    (``prismonet.model.io.remap_position_outputs``)."""
     init_transfer: bool = False
     """With ``init_from``: start from a model with other latent sizes, prior or outputs (e.g. the Clevr model
     for a ShapeNet-style setting, or for the full-rotation variant): what fits is copied, the latent outputs
