@@ -321,6 +321,26 @@ def test_init_from_starts_a_run_with_a_trained_models_weights_at_another_slot_co
         train(cfg(data, steps=1, init_from=str(tmp_path / "nowhere")), tmp_path / "bad", progress=False)
 
 
+def test_init_keep_positions_remaps_the_position_rows_and_copies_them_without_it(data, tmp_path):
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.io import HEAD
+
+    train(cfg(data, steps=2), tmp_path / "src", progress=False)
+    src, _ = load_model(tmp_path / "src")
+    taller = ModelConfig(position_offset=(0.0, 0.0, 0.8), position_scale=(1.5, 1.5, 1.0))
+    for keep in (False, True):  # lr so small that the one step moves nothing measurable
+        train(cfg(data, steps=1, lr=1e-12, init_from=str(tmp_path / "src"), init_keep_positions=keep, model=taller),
+              tmp_path / f"ft{keep}", progress=False)
+    plain, kept = load_model(tmp_path / "ftFalse")[0], load_model(tmp_path / "ftTrue")[0]
+    z = src.sh_dim + src.cfg.tex_dim + 2  # the height row of this world-frame model
+    w, b = src.state_dict()[f"{HEAD}.weight"], src.state_dict()[f"{HEAD}.bias"]
+    torch.testing.assert_close(plain.state_dict()[f"{HEAD}.bias"], b, atol=1e-8, rtol=0)  # copied as it was
+    # 0.4 + 0.5 raw = 0.8 + 1.0 raw'  =>  raw' = 0.5 raw - 0.4
+    torch.testing.assert_close(kept.state_dict()[f"{HEAD}.weight"][z], 0.5 * w[z], atol=1e-8, rtol=0)
+    torch.testing.assert_close(kept.state_dict()[f"{HEAD}.bias"][z], 0.5 * b[z] - 0.4, atol=1e-7, rtol=0)
+    torch.testing.assert_close(kept.state_dict()[f"{HEAD}.bias"][: z - 2], b[: z - 2], atol=1e-8, rtol=0)  # latents
+
+
 def test_a_run_records_which_weights_it_started_from_across_a_resume(data, tmp_path):
     """``init_from`` names can move (``shipped`` is whichever model ships now): the run keeps the
     fingerprint of the weights it actually started from, also when it was interrupted and resumed."""

@@ -69,10 +69,9 @@ def test_bad_transfer_and_inside_test_settings_say_what_is_wrong():
     from prismonet.model.trainer import TrainConfig
     from prismonet.shapes.sdf_samples import SamplingConfig
 
-    with pytest.raises(ValueError, match="init_transfer and init_widen need init_from"):
-        TrainConfig(init_transfer=True)
-    with pytest.raises(ValueError, match="init_transfer and init_widen need init_from"):
-        TrainConfig(init_widen=True)
+    for flag in ("init_transfer", "init_widen", "init_keep_positions"):
+        with pytest.raises(ValueError, match="init_keep_positions need init_from"):
+            TrainConfig(**{flag: True})
     with pytest.raises(ValueError, match="exclude each other"):
         TrainConfig(init_from="shipped", init_transfer=True, init_widen=True)
     with pytest.raises(ValueError, match="sampling.inside: expected one of"):

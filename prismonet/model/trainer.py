@@ -60,10 +60,12 @@ class TrainConfig:
     schedule of the steps already taken unchanged."""
     init_from: str | None = None
     """A trained model (run folder or ``.safetensors``) whose weights start the run, e.g. to fine-tune a
-    3-object model on scenes with 4 or 5 objects (the encoder is shared across slots). Where ``model.position_offset``
-    / ``position_scale`` differ from that model's (e.g. stacked blocks need taller heights than the tabletop model
-    they start from), its position outputs are remapped so that every slot starts where it was
-    (``prismonet.model.io.remap_position_outputs``)."""
+    3-object model on scenes with 4 or 5 objects (the encoder is shared across slots)."""
+    init_keep_positions: bool = False
+    """With ``init_from`` and ``model.position_offset`` / ``position_scale`` other than that model's (e.g. stacked
+    blocks, taller than the tabletop scenes of the model they start from): remap its position outputs so that every
+    slot starts where it was (``prismonet.model.io.remap_position_outputs``). Off, the outputs are copied as they are
+    and the slots start elsewhere, as the shipped recipes that change the units (`blocktowers`) were trained."""
     init_transfer: bool = False
     """With ``init_from``: start from a model with other latent sizes, prior or outputs (e.g. the Clevr model
     for a ShapeNet-style setting, or for the full-rotation variant): what fits is copied, the latent outputs
@@ -111,8 +113,8 @@ class TrainConfig:
         for name in ("log_every", "image_every", "checkpoint_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if (self.init_transfer or self.init_widen) and self.init_from is None:
-            raise ValueError("init_transfer and init_widen need init_from (the trained model to start from)")
+        if (self.init_transfer or self.init_widen or self.init_keep_positions) and self.init_from is None:
+            raise ValueError("init_transfer, init_widen and init_keep_positions need init_from (the trained model to start from)")
         if self.init_transfer and self.init_widen:
             raise ValueError("init_transfer and init_widen exclude each other")
         if self.loss.w_keep > 0 and not (self.model.refine_passes and self.model.refiner_keep and self.distill):
@@ -363,7 +365,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             anchor_start(model)
             if rank == 0:
                 print(f"init_from {cfg.init_from}: an unanchored model; position outputs zeroed (every slot starts at its anchor)")
-        elif remap_position_outputs(model, source.cfg) and rank == 0:
+        elif cfg.init_keep_positions and remap_position_outputs(model, source.cfg) and rank == 0:
             print(f"init_from {cfg.init_from}: position outputs remapped to model.position_offset / position_scale "
                   f"(the same positions at the start)")
     targets = None
