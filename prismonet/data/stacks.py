@@ -126,34 +126,41 @@ def _group_disc(blocks: list[dict]) -> tuple[np.ndarray, float]:
                        for b in blocks)
 
 
+PLACE_TRIES = 20
+"""Layouts tried for one deal of the blocks into stacks before it is dealt again."""
+
+
+def _stacks_apart(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int], discs: list,
+                  base: dict | None = None) -> list[list[dict]] | None:
+    """Stacks of the given heights, on the ground or on ``base``'s top, whose footprint discs keep ``cfg.min_gap`` apart
+    from each other and from ``discs`` (extended with theirs), or ``None`` at the first one that does not."""
+    stacks = []
+    for h in heights:
+        blocks = _one_stack(rng, cfg, h, base=base, spread=None if base is None else PLATFORM_SPREAD)
+        centre, radius = _group_disc(blocks)
+        if any(np.linalg.norm(centre - c) < radius + r + cfg.min_gap for c, r in discs):
+            return None
+        stacks.append(blocks)
+        discs.append((centre, radius))
+    return stacks
+
+
 def _platform(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int]) -> list[list[dict]] | None:
     """A platform on the ground carrying stacks of the given heights apart from each other (each balancing on it), or
     ``None`` after ``PLACE_TRIES`` layouts. The platform is the first stack returned, alone."""
     pool = platforms(cfg)
     if not pool:
         raise PlacementError(f"{cfg.shapes}: no wide, low block with a flat top to serve as a platform")
-    t = cfg.towers
     for _ in range(PLACE_TRIES):
         spec = pool[int(rng.integers(len(pool)))]
-        scale = float(rng.uniform(*t.platform_scale))
+        scale = float(rng.uniform(*cfg.towers.platform_scale))
         base = {"spec": spec, "category": spec.category, "half_extents": spec.half_extents, "scale": scale,
                 "xy": rng.uniform(-cfg.area_half, cfg.area_half, 2), "yaw": float(rng.uniform(-math.pi, math.pi)),
                 "z": scale * spec.half_extents[2]}
-        stacks, discs = [[base]], []
-        for h in heights:
-            blocks = _one_stack(rng, cfg, h, base=base, spread=PLATFORM_SPREAD)
-            centre, radius = _group_disc(blocks)
-            if any(np.linalg.norm(centre - c) < radius + r + cfg.min_gap for c, r in discs):
-                break
-            stacks.append(blocks)
-            discs.append((centre, radius))
-        if len(stacks) == len(heights) + 1:
-            return stacks
+        on_top = _stacks_apart(rng, cfg, heights, [], base)
+        if on_top is not None:
+            return [[base], *on_top]
     return None
-
-
-PLACE_TRIES = 20
-"""Layouts tried for one deal of the blocks into stacks before it is dealt again."""
 
 
 def _place(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int], platform_heights: list[int] | None = None
@@ -161,22 +168,15 @@ def _place(rng: np.random.Generator, cfg: ClevrConfig, heights: list[int], platf
     """Stacks of the given heights whose footprints keep ``cfg.min_gap`` apart, or ``None`` after ``PLACE_TRIES``;
     with ``platform_heights``, first a platform carrying stacks of those heights (``_platform``), kept apart too."""
     for _ in range(PLACE_TRIES):
-        stacks, discs = [], []
+        group, discs = [], []
         if platform_heights is not None:
             group = _platform(rng, cfg, platform_heights)
             if group is None:
                 continue
-            stacks = group
             discs.append(_group_disc([b for stack in group for b in stack]))
-        for h in heights:
-            blocks = _one_stack(rng, cfg, h)
-            centre, radius = _group_disc(blocks)
-            if any(np.linalg.norm(centre - c) < radius + r + cfg.min_gap for c, r in discs):
-                break
-            stacks.append(blocks)
-            discs.append((centre, radius))
-        if len(discs) == len(heights) + (platform_heights is not None):
-            return stacks
+        ground = _stacks_apart(rng, cfg, heights, discs)
+        if ground is not None:
+            return group + ground
     return None
 
 
