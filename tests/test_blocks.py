@@ -219,3 +219,20 @@ def test_towers_cli_refuses_a_bad_scale_range(capsys):
     assert main(["data", "towers", "--shapes", "data/blocks", "--scale", "0.6,0.3", "--out", "/tmp/never"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "0 < LO <= HI" in err[0]
+
+
+@pytest.mark.parametrize("flat", [True, False])
+def test_towers_cli_refuses_platforms_it_cannot_build_in_one_line(tmp_path, capsys, flat):
+    from prismonet.cli import main
+
+    write_blocks(tmp_path / "b")
+    args = ["--platform-scale", "2.0,1.2"]  # LO > HI
+    if not flat:  # a block set of cubes and tall blocks only: nothing wide and low to stand on
+        record = json.loads((tmp_path / "b" / "models.json").read_text())
+        record["models"] = [m for m in record["models"] if m["half_extents"][2] >= 0.5]
+        (tmp_path / "b" / "models.json").write_text(json.dumps(record))
+        args = ["--platforms", "0.5"]
+    assert main(["data", "towers", "--shapes", str(tmp_path / "b"), *args, "--out", str(tmp_path / "t")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ("0 < LO <= HI" in err[0] if flat else "no wide, low block" in err[0])
+    assert not (tmp_path / "t").exists()
