@@ -15,7 +15,9 @@ table gives medians over every timed step. Variants (cumulative, each adds one c
 - ``blur``: + the loss's Gaussian blur truncated at 6 sigma (7 taps instead of 17 at sigma 0.5);
 - ``blurmm``: + that blur as two matrix products instead of kornia's convolutions, and L_I / L_D blurring
   the difference once instead of each image (session 58; ``prismonet.model.blur``);
-- ``fused``: + Adam as one fused kernel (``fused=True``) instead of its per-tensor loop (session 58).
+- ``fused``: + Adam as one fused kernel (``fused=True``) instead of its per-tensor loop (session 58);
+- ``compiled``: + the object and background encoders under ``torch.compile`` (inductor, static shapes; session 62,
+  not adopted: slower). Its first round also compiles, which round 0 (the warm-up) absorbs.
 
 The process keeps freed memory for reuse as every ``prismonet`` command does (``prismonet.allocator``;
 ``PRISMONET_MALLOC=default`` turns it off).
@@ -61,9 +63,16 @@ class ShippedStep:
         self.state = {k: v.clone() for k, v in self.model.state_dict().items()}
         self.reset()
 
-    def reset(self, fused: bool = True) -> None:
+    def reset(self, fused: bool = True, compiled: bool = False) -> None:
+        if hasattr(self, "_eager"):  # the eager modules back first, so that the state's names match
+            self.model.encoder, self.model.bg_encoder = self._eager
         self.model.load_state_dict(self.state)
         self.opt = torch.optim.Adam(self.params, lr=1e-6, fused=fused)
+        if compiled:
+            if not hasattr(self, "_compiled"):  # once: the compiled modules wrap the eager ones and share their weights
+                self._eager = (self.model.encoder, self.model.bg_encoder)
+                self._compiled = tuple(torch.compile(m, dynamic=False) for m in self._eager)
+            self.model.encoder, self.model.bg_encoder = self._compiled
 
     def __call__(self, seed: int) -> float:
         from prismonet.model.losses import compute_losses
@@ -83,7 +92,7 @@ class ShippedStep:
         return time.perf_counter() - t0
 
 
-VARIANTS = ("previous", "zbuffer", "inplace", "blur", "blurmm", "fused")
+VARIANTS = ("previous", "zbuffer", "inplace", "blur", "blurmm", "fused", "compiled")
 _ORIGINAL: dict = {}
 
 
@@ -162,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in range(args.rounds + 1):  # round 0 warms up
         for n in names:
             configure(n)
-            step.reset(fused=VARIANTS.index(n) >= 5)
+            step.reset(fused=VARIANTS.index(n) >= 5, compiled=n == "compiled")
             for i in range(args.steps):
                 t = step(1000 * r + i)
                 if r > 0:
