@@ -52,7 +52,8 @@ def cmd_refiner(args) -> int:
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
-                           texture=args.texture, color=args.color)  # validate first
+                           texture=args.texture, color=args.color, true_poses=args.true_poses,
+                           fill_hidden=args.fill_hidden)  # validate first
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
@@ -155,6 +156,12 @@ def add_parsers(sub) -> None:
                    help="the refiner also corrects each slot's shape latent (fitted to targets that have shapes: --search-shapes)")
     r.add_argument("--keep", action="store_true",
                    help="the refiner also learns which slots to keep (those the search's fit shows); it drops the others")
+    r.add_argument("--true-poses", action="store_true",
+                   help="supervised (+ 3D pose): fit the slots the search shows to the true positions, scales and yaws "
+                        "(up to each shape's symmetry) of the objects they match; shapes, textures and keeping stay the search's")
+    r.add_argument("--fill-hidden", action="store_true",
+                   help="with --true-poses: the objects no shown slot matches go to the hidden slots, which are then kept "
+                        "(measured worse on tableware: off by default)")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])
     _add_color_step_parser(sub)

@@ -52,11 +52,20 @@ class RefinerFitConfig:
     color: float = 0.0
     """Weight of the colour term (``color_term``): the texture field's colours under the corrected and the target
     texture latents, compared at fixed points of the object frame. 0: off (the fits before session 51)."""
+    true_poses: bool = False
+    """Fit the slots the search shows to the true poses of the objects they match, not to the search's
+    (``prismonet.model.pose_targets``): supervised, the + 3D pose variant. Shapes, textures and the keep target stay the
+    search's."""
+    fill_hidden: bool = False
+    """With ``true_poses``: the true objects no shown slot matches go to the hidden slots, which become targets
+    (``pose_targets.with_true_poses``)."""
 
     def __post_init__(self) -> None:
         if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0:
             raise ValueError("refiner fit: steps, batch_size, lr and checkpoint_every must be positive and holdout >= 0, got "
                              f"{self.steps}, {self.batch_size}, {self.lr}, {self.checkpoint_every}, {self.holdout}")
+        if self.fill_hidden and not self.true_poses:
+            raise ValueError("refiner fit: fill_hidden needs true_poses (it gives hidden slots the true poses left over)")
         if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
             raise ValueError(f"refiner fit: weight_decay, texture and color must be >= 0, got {self.weight_decay}, {self.texture}, {self.color}")
 
@@ -186,10 +195,16 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
-    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k == "color" and v == 0)}  # runs before it resume
+    # the options added later are recorded only when on, so runs made before them resume
+    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k in ("color", "true_poses", "fill_hidden") and not v)}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
+    if cfg.true_poses:
+        from prismonet.model.pose_targets import true_poses_for
+
+        targets.t, record["true_poses"] = true_poses_for(targets.t, ds, count, cfg.fill_hidden)
+        targets.count = count
     ckpt = out / "checkpoint.safetensors"
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
