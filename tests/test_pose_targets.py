@@ -87,6 +87,18 @@ def test_true_poses_bad_input():
                         torch.ones(2, 3), [0.0])
 
 
+def test_true_poses_need_the_shape_library(tmp_path):
+    """Scenes made from an imported library that is not here: the symmetries are unknown, refused in one line."""
+    from types import SimpleNamespace
+
+    from prismonet.model.pose_targets import true_poses_for
+
+    ds = SimpleNamespace(path=tmp_path, meta={"config": {"shapes": str(tmp_path / "gone")}})
+    with pytest.raises(ValueError, match="shape library is not here") as e:
+        true_poses_for(_targets(), ds, 1)
+    assert "\n" not in str(e.value)
+
+
 def test_fit_refiner_to_the_true_poses(shipped, tmp_path):
     """Targets equal to the encoder's own slots: without the true poses there is nothing to learn (held-out loss 0);
     with them the held-out loss starts at the slots' distance from the true poses (``distill_loss`` against

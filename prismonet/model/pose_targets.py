@@ -99,5 +99,3 @@ def true_poses_for(targets: dict[str, torch.Tensor], ds, count: int, fill_hidden
     head = {k: v[:count] for k, v in targets.items()}
     return with_true_poses(head, truth["obj_count"].long(), truth["obj_shape"].long(), truth["obj_position"].float(),
                            truth["obj_yaw"].float(), truth["obj_scale"].float(), periods, fill_hidden)
-
-
