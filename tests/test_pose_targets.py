@@ -142,3 +142,86 @@ def test_fit_refiner_to_the_true_poses(shipped, tmp_path):
     stats = info["refiner_fit"]["true_poses"]
     assert stats["slots"] == 12 * model.cfg.num_slots and stats["matched"] == int(b.obj_count.clamp_max(model.cfg.num_slots).sum())
     assert "true_poses" not in load_model(tmp_path / "own")[1]["refiner_fit"]["fit"]  # runs made before the option resume
+
+
+def _slots():
+    """One scene, three active slots at x = 1, y = 1 and (3, 3), yaws 3.0, 1.3 and 0."""
+    from prismonet.render import SceneParams
+
+    t = _targets()
+    return SceneParams(t["z_sh"], t["z_tex"], t["position"], t["cos_sin"], t["scale"])
+
+
+def test_posed_at_truth_moves_the_nearest_slots_and_hides_the_rest():
+    """Two objects (round near slot 1, half-turn near slot 0): those slots take the objects' positions, scales and yaws
+    (the half-turn one turned by pi towards the slot's own 3.0, the round one keeping 1.3); slot 2, which no object
+    takes, is made inactive; the latents are the slots' own. With four objects and three slots one is left over."""
+    from types import SimpleNamespace
+
+    from prismonet.model.pose_targets import posed_at_truth
+
+    pos = torch.tensor([[[0.1, 1.1, 0.4], [0.9, -0.1, 0.45], [0.0, 0.0, 0.0]]])
+    truth = SimpleNamespace(obj_count=torch.tensor([2]), obj_shape=torch.tensor([[0, 1, -1]]), obj_position=pos,
+                            obj_yaw=torch.tensor([[2.0, 0.1, 0.0]]), obj_scale=torch.tensor([[0.3, 0.4, 0.0]]))
+    p = _slots()
+    new, stats = posed_at_truth(p, truth, [0.0, math.pi])
+    assert torch.equal(new.position[0, :2], pos[0, [1, 0]]) and torch.allclose(new.scale[0, :2], torch.tensor([0.4, 0.3]))
+    yaw = torch.atan2(new.cos_sin[..., 1], new.cos_sin[..., 0])
+    assert yaw[0, 0] == pytest.approx(0.1 + math.pi - 2 * math.pi, abs=1e-6)
+    assert yaw[0, 1] == pytest.approx(1.3, abs=1e-6)
+    assert new.active.tolist() == [[True, True, False]]
+    assert torch.equal(new.z_sh, p.z_sh) and torch.equal(new.z_tex, p.z_tex)
+    assert stats == {"objects": 2, "matched": 2, "unmatched_objects": 0}
+    assert torch.equal(p.position, _targets()["position"])  # the input is not changed
+    four = SimpleNamespace(obj_count=torch.tensor([4]), obj_shape=torch.zeros(1, 4, dtype=torch.long),
+                           obj_position=torch.rand(1, 4, 3), obj_yaw=torch.zeros(1, 4), obj_scale=torch.ones(1, 4))
+    new, stats = posed_at_truth(p, four, [0.0])
+    assert new.active.all() and stats == {"objects": 4, "matched": 3, "unmatched_objects": 1}
+    with pytest.raises(ValueError, match="shape ids"):
+        posed_at_truth(p, SimpleNamespace(**{**vars(truth), "obj_shape": torch.tensor([[5, 1, -1]])}), [0.0, math.pi])
+
+
+def test_distill_targets_at_the_true_poses(tmp_path):
+    """``fit_targets(..., true_poses=True)`` on the shipped scenes: every slot the fit shows sits exactly on a true
+    object (position and scale equal, yaw equal up to the shape's period), and no object takes two slots; with pose
+    trials left on it is refused in one line."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.color_fit import ColorFitConfig
+    from prismonet.model.distill import DistillError, DistillTargets
+    from prismonet.model.distill_fit import fit_targets, true_pose_search
+    from prismonet.model.inference import InferenceConfig
+    from prismonet.model.io import load_model
+    from prismonet.model.pose_targets import yaw_periods_of
+    from prismonet.model.search import SearchConfig
+
+    model, _ = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    cfg = InferenceConfig(search=SearchConfig(rounds=1, shape_nearest=2), color_fit=ColorFitConfig(steps=2))
+    with pytest.raises(DistillError, match="may only try shapes") as e:
+        fit_targets(model, ds, tmp_path / "no", 2, cfg, batch_size=2, progress=False, true_poses=True)
+    assert "\n" not in str(e.value)
+    cfg = true_pose_search(cfg)
+    assert cfg.search.trials_per_slot == 0 and cfg.search.shape_nearest == 2
+    n = 3
+    s = fit_targets(model, ds, tmp_path / "t", n, cfg, batch_size=2, progress=False, true_poses=True)
+    assert s["scenes"] == n
+    t = DistillTargets(tmp_path / "t", num_slots=3).t
+    b = ds.batch(list(range(n)))
+    periods = torch.tensor(yaw_periods_of(ds))
+    shown = 0
+    for i in range(n):
+        used = set()
+        for k in torch.nonzero(t["visible"][i] >= 25).flatten().tolist():
+            d = (b.obj_position[i, : int(b.obj_count[i])] - t["position"][i, k]).norm(dim=-1)
+            j = int(d.argmin())
+            assert float(d[j]) < 1e-6 and j not in used
+            used.add(j)
+            assert float(t["scale"][i, k]) == pytest.approx(float(b.obj_scale[i, j]), abs=1e-6)
+            period = float(periods[int(b.obj_shape[i, j])])
+            if period > 0:
+                yaw = math.atan2(float(t["cos_sin"][i, k, 1]), float(t["cos_sin"][i, k, 0]))
+                turns = (yaw - float(b.obj_yaw[i, j])) / period
+                assert turns == pytest.approx(round(turns), abs=1e-4)
+            shown += 1
+    assert shown >= n  # the sample scenes have objects in view

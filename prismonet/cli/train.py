@@ -27,19 +27,21 @@ def cmd_train(args) -> int:
 def cmd_distill(args) -> int:
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
-    from prismonet.model.distill_fit import fit_targets, weights_digest
+    from prismonet.model.distill_fit import fit_targets, true_pose_search, weights_digest
     from prismonet.model.io import load_model, training_loss_config
 
     if args.batch <= 0:
         raise ValueError(f"--batch must be positive, got {args.batch}")
     cfg = inference_config(args)  # validate first
+    if args.true_poses:
+        cfg = true_pose_search(cfg)
     model, info = load_model(args.checkpoint)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds)
     count = len(ds) if args.count is None else args.count
     meta = {"model": str(args.checkpoint), "model_digest": weights_digest(model), "data": str(args.data), "split": args.split}
     s = fit_targets(model, ds, args.out, count, cfg, batch_size=args.batch, progress=not args.quiet, meta=meta,
-                    loss_cfg=training_loss_config(info))
+                    loss_cfg=training_loss_config(info), true_poses=args.true_poses)
     extra = f"; fit score {s['score_before']:.4f} -> {s['score_after']:.4f} on the chunks made now" if "score_before" in s else ""
     print(f"distillation targets for {s['scenes']} scenes of {args.data} [{args.split}] in {args.out}{extra}")
     return 0
@@ -129,6 +131,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--split", default="train")
     p.add_argument("--count", type=int, default=None, help="fit the first N scenes of the split (default: all)")
     p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--true-poses", action="store_true",
+                   help="+ 3D pose variant (supervised): start from the true poses and search only shapes (--search-shapes) and colours")
     p.add_argument("--quiet", action="store_true")
     add_inference_args(p, search=3, fit_color=50)
     p.set_defaults(func=cmd_distill, outputs=[("out", "dir")])

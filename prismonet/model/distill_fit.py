@@ -36,11 +36,23 @@ def encoder_digest(model) -> str:
     return weights_digest(model, skip="refiner.")
 
 
+def true_pose_search(cfg):
+    """``cfg`` (an ``InferenceConfig``) with the search's pose trials off (scale 1 only, no shifts, no yaws): its shape
+    trials and the colour fit are what remain, for targets at the true poses (``fit_targets(..., true_poses=True)``)."""
+    from dataclasses import replace
+
+    return replace(cfg, search=replace(cfg.search, scales=(1.0,), shifts=(), yaws=()))
+
+
 def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int = 16,
-                progress: bool = True, meta: dict | None = None, loss_cfg=None) -> dict:
+                progress: bool = True, meta: dict | None = None, loss_cfg=None, true_poses: bool = False) -> dict:
     """Fit targets for scenes ``0 .. count-1`` of ``ds`` into ``out_dir`` (resumable) with the
     test-time steps of ``cfg`` (an ``InferenceConfig`` without extra slots: slot k must stay encoder
     step k; ``loss_cfg``: the training losses any refinement uses). ``distill.CHUNK`` scenes a file.
+
+    ``true_poses`` (the + 3D pose variant, supervised): the steps start from the encoder's slots put on the scenes'
+    true poses (``pose_targets.start_at_truth``; a slot no object takes is hidden), so that what they fit (shape
+    trials, colours) is fitted at the truth. The search's pose trials must then be off (``true_pose_search``).
     Returns a summary."""
     from tqdm import tqdm
 
@@ -52,6 +64,13 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         raise DistillError("distillation targets keep encoder order (slot k is step k): extra slots cannot be used")
     if cfg.reseed.grow:
         raise DistillError("--reseed-grow cannot make distillation targets: the targets hold one row per slot of the model")
+    periods = None
+    if true_poses:
+        from prismonet.model.pose_targets import yaw_periods_of
+
+        if cfg.search.trials_per_slot:
+            raise DistillError("--true-poses: the poses are given, so the search may only try shapes (no scale, shift or yaw trials)")
+        periods = yaw_periods_of(ds)
     if not 0 < count <= len(ds):
         raise DistillError(f"count must be in 1..{len(ds)} (the split's scenes), got {count}")
     out = Path(out_dir)
@@ -64,6 +83,8 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         info["reseed"] = asdict(cfg.reseed)
     if not cfg.use_depth:
         info["use_depth"] = False
+    if true_poses:
+        info["true_poses"] = True
     info_path = out / "targets.json"
     if info_path.is_file():
         old = json.loads(info_path.read_text())
@@ -94,7 +115,12 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
                 if name == "encoder":
                     before.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
 
-            o = infer(model, b, cfg, loss_cfg, on_step=score_encoder)
+            start = None
+            if periods is not None:
+                from prismonet.model.pose_targets import start_at_truth
+
+                start = lambda o, b=b: start_at_truth(model, o, b, periods)
+            o = infer(model, b, cfg, loss_cfg, on_step=score_encoder, start=start)
             with torch.no_grad():
                 after.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
             p = o.latents.params

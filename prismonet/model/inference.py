@@ -115,7 +115,8 @@ class InferenceConfig:
 
 
 def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: LossConfig | None = None,
-          num_slots: int | None = None, on_step: Callable[[str, ModelOutput], None] | None = None) -> ModelOutput:
+          num_slots: int | None = None, on_step: Callable[[str, ModelOutput], None] | None = None,
+          start: Callable[[ModelOutput], ModelOutput] | None = None) -> ModelOutput:
     """``model``'s decomposition of ``batch`` after the steps of ``cfg``.
 
     Args:
@@ -126,6 +127,8 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
         num_slots: slots kept (default: the model's).
         on_step: called as ``on_step(name, output)`` after each step that ran: ``"encoder"``,
             ``"reseeded"``, ``"searched"``, ``"refined"``, ``"color_fit"``, ``"pruned"``.
+        start: maps the encoder's output to the one the test-time steps start from (distillation targets at the
+            true poses, ``prismonet.model.pose_targets.start_at_truth``); ``None``: the encoder's own.
     """
     loss_cfg = loss_cfg or LossConfig()
     report = on_step or (lambda name, out: None)
@@ -133,6 +136,8 @@ def infer(model, batch, cfg: InferenceConfig = InferenceConfig(), loss_cfg: Loss
         out = decode_overcomplete(model, batch, num_slots, cfg.extra_slots, use_depth=cfg.use_depth,
                                   w_image=loss_cfg.w_image, w_depth=loss_cfg.w_depth, stop=cfg.stop)
     report("encoder", out)
+    if start is not None:
+        out = start(out)
     for cycle in range(cfg.reseed.cycles if cfg.reseed.rounds and cfg.search.rounds else 1):
         if cfg.reseed.rounds > 0:
             step = cfg.reseed if cycle == 0 else replace(cfg.reseed, grow=0)  # slots are added once

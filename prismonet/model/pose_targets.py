@@ -13,10 +13,14 @@ yaw matches its colours).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from prismonet.model.distill import MIN_VISIBLE, VISIBLE
+from prismonet.model.prismonet import ModelOutput
+from prismonet.render import SceneParams
 
 
 def nearest_turn(yaw: torch.Tensor, true_yaw: torch.Tensor, period: torch.Tensor) -> torch.Tensor:
@@ -26,6 +30,30 @@ def nearest_turn(yaw: torch.Tensor, true_yaw: torch.Tensor, period: torch.Tensor
     p = torch.where(period > 0, period, torch.ones_like(period))
     turned = true_yaw + p * torch.round((yaw - true_yaw) / p)
     return torch.where(period > 0, turned, yaw)
+
+
+def match_slots(slot_position: torch.Tensor, obj_position: torch.Tensor, slots: torch.Tensor,
+                objects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """One scene's pairs ``(slot, object)`` among ``slots`` and ``objects`` (index tensors into ``slot_position (K, 3)``
+    and ``obj_position (M, 3)``), as L_pose pairs them: Hungarian on position distance. ``min(len(slots),
+    len(objects))`` pairs."""
+    from scipy.optimize import linear_sum_assignment
+
+    if len(slots) == 0 or len(objects) == 0:
+        return slots[:0], objects[:0]
+    cost = torch.cdist(slot_position[slots].double(), obj_position[objects].double())
+    rows, cols = linear_sum_assignment(cost.numpy())
+    return slots[torch.as_tensor(rows, dtype=torch.long)], objects[torch.as_tensor(cols, dtype=torch.long)]
+
+
+def true_cos_sin(yaw: torch.Tensor, true_yaw: torch.Tensor, shape: torch.Tensor, periods: torch.Tensor,
+                 where: str) -> torch.Tensor:
+    """``(N, 2)`` cos and sin of the true yaws as a slot should take them: ``nearest_turn`` to the slot's ``yaw`` by
+    each object's shape's period (``periods`` indexed by ``shape`` ids; ``where`` names the caller in the error)."""
+    if int(shape.min()) < 0 or int(shape.max()) >= len(periods):
+        raise ValueError(f"{where} has shape ids {shape.tolist()}, the yaw periods cover {len(periods)}")
+    new_yaw = nearest_turn(yaw.float(), true_yaw.float(), periods[shape])
+    return torch.stack([torch.cos(new_yaw), torch.sin(new_yaw)], -1)
 
 
 def with_true_poses(targets: dict[str, torch.Tensor], obj_count: torch.Tensor, obj_shape: torch.Tensor,
@@ -42,8 +70,6 @@ def with_true_poses(targets: dict[str, torch.Tensor], obj_count: torch.Tensor, o
 
     Returns the new targets and counts: ``slots`` shown, ``matched`` (replaced), ``objects`` (true objects in all),
     ``filled`` (hidden slots given an object), ``unmatched_objects`` (true objects left without a slot)."""
-    from scipy.optimize import linear_sum_assignment
-
     if VISIBLE not in targets:
         raise ValueError("with_true_poses: these targets do not say which slots the fit shows; make them again with `prismonet distill`")
     n, _ = targets["scale"].shape
@@ -57,18 +83,12 @@ def with_true_poses(targets: dict[str, torch.Tensor], obj_count: torch.Tensor, o
 
     def match(i: int, slots: torch.Tensor, objects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Put the true poses of ``objects`` on ``slots`` of scene ``i`` (Hungarian on position); the pairs made."""
-        if len(slots) == 0 or len(objects) == 0:
-            return slots[:0], objects[:0]
-        cost = torch.cdist(targets["position"][i, slots].double(), obj_position[i, objects].double())
-        rows, cols = linear_sum_assignment(cost.numpy())
-        slot, obj = slots[torch.as_tensor(rows, dtype=torch.long)], objects[torch.as_tensor(cols, dtype=torch.long)]
-        shape = obj_shape[i, obj]
-        if int(shape.min()) < 0 or int(shape.max()) >= len(periods):
-            raise ValueError(f"with_true_poses: scene {i} has shape ids {shape.tolist()}, the yaw periods cover {len(periods)}")
-        out["position"][i, slot] = obj_position[i, obj].to(out["position"].dtype)
-        out["scale"][i, slot] = obj_scale[i, obj].to(out["scale"].dtype)
-        new_yaw = nearest_turn(yaw[i, slot], obj_yaw[i, obj].float(), periods[shape])
-        out["cos_sin"][i, slot] = torch.stack([torch.cos(new_yaw), torch.sin(new_yaw)], -1).to(out["cos_sin"].dtype)
+        slot, obj = match_slots(targets["position"][i], obj_position[i], slots, objects)
+        if len(slot):
+            cos_sin = true_cos_sin(yaw[i, slot], obj_yaw[i, obj], obj_shape[i, obj], periods, f"with_true_poses: scene {i}")
+            out["position"][i, slot] = obj_position[i, obj].to(out["position"].dtype)
+            out["scale"][i, slot] = obj_scale[i, obj].to(out["scale"].dtype)
+            out["cos_sin"][i, slot] = cos_sin.to(out["cos_sin"].dtype)
         return slot, obj
 
     for i in range(n):
@@ -88,6 +108,16 @@ def with_true_poses(targets: dict[str, torch.Tensor], obj_count: torch.Tensor, o
 def true_poses_for(targets: dict[str, torch.Tensor], ds, count: int, fill_hidden: bool = False) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
     """``with_true_poses`` for the first ``count`` scenes of dataset ``ds`` (the split the targets were made on), the yaw
     periods found from its shape library's meshes (``prismonet.evaluation.evaluate.shape_periods``)."""
+    periods = yaw_periods_of(ds)
+    truth = {k: torch.from_numpy(np.array(ds.arrays[k][:count])) for k in ("obj_count", "obj_shape", "obj_position", "obj_yaw", "obj_scale")}
+    head = {k: v[:count] for k, v in targets.items()}
+    return with_true_poses(head, truth["obj_count"].long(), truth["obj_shape"].long(), truth["obj_position"].float(),
+                           truth["obj_yaw"].float(), truth["obj_scale"].float(), periods, fill_hidden)
+
+
+def yaw_periods_of(ds) -> list[float]:
+    """Each shape's period of symmetry about z, by dataset ``ds``'s ``obj_shape`` ids (its shape library's meshes,
+    ``prismonet.evaluation.evaluate.shape_periods``); refused in one line when the library is not here."""
     from prismonet.evaluation.evaluate import dataset_shapes, shape_periods
 
     specs, clevr_ids = dataset_shapes(ds)
@@ -95,7 +125,49 @@ def true_poses_for(targets: dict[str, torch.Tensor], ds, count: int, fill_hidden
     if periods is None:
         raise ValueError(f"{ds.path}: its shape library is not here, so the shapes' symmetries (and the true yaws that "
                          "matter) are unknown; import it first (`prismonet shapes import-furniture ...`)")
-    truth = {k: torch.from_numpy(np.array(ds.arrays[k][:count])) for k in ("obj_count", "obj_shape", "obj_position", "obj_yaw", "obj_scale")}
-    head = {k: v[:count] for k, v in targets.items()}
-    return with_true_poses(head, truth["obj_count"].long(), truth["obj_shape"].long(), truth["obj_position"].float(),
-                           truth["obj_yaw"].float(), truth["obj_scale"].float(), periods, fill_hidden)
+    return periods
+
+
+def posed_at_truth(params: SceneParams, batch, yaw_periods: list[float]) -> tuple[SceneParams, dict[str, int]]:
+    """A copy of slots ``params`` with each true object of ``batch`` (a ``SceneBatch``: its poses are read, nothing
+    else) on the slot nearest it, as L_pose pairs them (Hungarian on position, every active slot a candidate): that
+    slot takes the object's position and scale, and its yaw up to the shape's symmetry (``true_cos_sin``: a round
+    shape keeps the slot's yaw). The slots no object takes are made inactive, so they render nothing. Shape and
+    texture latents stay the slots' own.
+
+    Where the + 3D pose variant may read poses, the test-time search can then start at the truth and fit only what the
+    pose does not say (shape trials, colours): ``prismonet distill --true-poses``. Returns the new slots and counts:
+    ``objects``, ``matched`` and ``unmatched_objects`` (more objects than slots)."""
+    periods = torch.tensor(yaw_periods, dtype=torch.float32)
+    B, K = params.scale.shape
+    active = torch.ones(B, K, dtype=torch.bool) if params.active is None else params.active.cpu()
+    position, scale, cos_sin = params.position.clone(), params.scale.clone(), params.cos_sin.clone()
+    yaw = torch.atan2(cos_sin[..., 1], cos_sin[..., 0])
+    taken = torch.zeros(B, K, dtype=torch.bool)
+    count = batch.obj_count.long()
+    for i in range(B):
+        objects = torch.arange(int(count[i]))
+        slot, obj = match_slots(params.position[i].detach().cpu(), batch.obj_position[i], torch.nonzero(active[i]).flatten(),
+                                objects)
+        if len(slot):
+            cs = true_cos_sin(yaw[i, slot].cpu(), batch.obj_yaw[i, obj], batch.obj_shape[i, obj].long(), periods,
+                              f"posed_at_truth: scene {i}")
+            position[i, slot] = batch.obj_position[i, obj].to(position)
+            scale[i, slot] = batch.obj_scale[i, obj].to(scale)
+            cos_sin[i, slot] = cs.to(cos_sin)
+            taken[i, slot] = True
+    matched = int(taken.sum())
+    new = SceneParams(params.z_sh, params.z_tex, position, cos_sin, scale, params.axis, taken.to(params.scale.device))
+    return new, {"objects": int(count.sum()), "matched": matched, "unmatched_objects": int(count.sum()) - matched}
+
+
+def start_at_truth(model, out: ModelOutput, batch, yaw_periods: list[float]) -> ModelOutput:
+    """``out`` (the model's decoding of ``batch``) with its slots ``posed_at_truth`` and rendered again: where the
+    test-time steps start when the poses are given (``infer(..., start=...)``)."""
+    from prismonet.model.refine import render_latents
+
+    params, _ = posed_at_truth(out.latents.params, batch, yaw_periods)
+    H, W = batch.rgb.shape[-2:]
+    with torch.no_grad():
+        new = render_latents(model, params, out.latents.bg_color, batch.K, batch.T_world_cam, batch.ground_z, H, W)
+    return replace(new, slot_steps=out.slot_steps)
