@@ -66,7 +66,7 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         raise DistillError("--reseed-grow cannot make distillation targets: the targets hold one row per slot of the model")
     periods = None
     if true_poses:
-        from prismonet.model.pose_targets import yaw_periods_of
+        from prismonet.model.pose_targets import start_at_truth, yaw_periods_of
 
         if cfg.search.trials_per_slot:
             raise DistillError("--true-poses: the poses are given, so the search may only try shapes (no scale, shift or yaw trials)")
@@ -115,11 +115,7 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
                 if name == "encoder":
                     before.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
 
-            start = None
-            if periods is not None:
-                from prismonet.model.pose_targets import start_at_truth
-
-                start = lambda o, b=b: start_at_truth(model, o, b, periods)
+            start = None if periods is None else (lambda o, b=b: start_at_truth(model, o, b, periods))
             o = infer(model, b, cfg, loss_cfg, on_step=score_encoder, start=start)
             with torch.no_grad():
                 after.append(fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth))
