@@ -43,7 +43,7 @@ for n in ok:
         Path(f"runs/gpu/{n}/{f}").unlink()
 left = deadline - time.time() - 25  # start-up and the last checkpoint
 steps = {n: PROBE + max(0, int(left / (step_s[n] * 1.1))) for n in ok}
-say("step_s (4 side by side)", {n: round(v, 4) for n, v in step_s.items()}, "planned steps", steps)
+say(f"step_s ({len(ok)} side by side)", {n: round(v, 4) for n, v in step_s.items()}, "planned steps", steps)
 procs = {n: launch(n, steps[n], PROBE) for n in ok}
 while time.time() < deadline and any(p.poll() is None for p in procs.values()):
     time.sleep(2)
