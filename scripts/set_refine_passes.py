@@ -11,6 +11,12 @@ rule reads as unexplained in a greyscale image (``none``: grey images read as co
 
     python3 scripts/set_refine_passes.py tabletop_keep 2 runs/tabletop_keep_noshade --anchor-shade none   # session 48's
 
+``--keep-logit X`` sets ``refiner_keep_logit`` (the bar a keep logit must beat in every pass; default 0) and
+``--snap-shapes on`` sets ``refiner_snap_shape`` (each pass ends with every shape latent on the prior's nearest
+training code):
+
+    python3 scripts/set_refine_passes.py tableware_pose_keep 1 runs/s65/tpk_snap --snap-shapes on --keep-logit 1   # session 65's
+
 The copy's record keeps the source's and notes the change (``refine_passes_from``); the passes were chosen on
 the validation split (EVALUATION.md, "Session 46").
 """
@@ -38,6 +44,10 @@ def main() -> None:
     ap.add_argument("--anchor-shade", default=None, metavar="K",
                     help="also set anchor_shade_min: an evenly darkened composition by a factor >= K counts as a shadow "
                          "('none': off)")
+    ap.add_argument("--keep-logit", type=float, default=None, metavar="X",
+                    help="also set refiner_keep_logit: in every pass a slot is dropped where its keep logit is <= X (default 0)")
+    ap.add_argument("--snap-shapes", choices=("on", "off"), default=None,
+                    help="also set refiner_snap_shape: after each pass every shape latent becomes the prior's nearest training code")
     ap.add_argument("--anchor-gray", default=None, metavar="T",
                     help="also set anchor_gray_tol: in a greyscale image, a luminance miss above T is unexplained and "
                          "nothing reads as a shadow ('none': off)")
@@ -52,6 +62,12 @@ def main() -> None:
         fields["reanchor_steps"] = args.reanchor
     if args.reanchor_keep is not None:
         fields["reanchor_keep_logit"] = number_or_none("--reanchor-keep", args.reanchor_keep)
+    if args.keep_logit is not None:
+        if not model.cfg.refiner_keep:
+            raise SystemExit(f"{args.model}: --keep-logit needs a refiner with a keep output")
+        fields["refiner_keep_logit"] = args.keep_logit
+    if args.snap_shapes is not None:
+        fields["refiner_snap_shape"] = args.snap_shapes == "on"
     if args.anchor_shade is not None:
         if not model.cfg.anchor:
             raise SystemExit(f"{args.model}: --anchor-shade needs an anchored model")

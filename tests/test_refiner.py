@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, active_rows, apply_correction, centre_pixels,
-                                     glimpse, refiner_inputs, slot_latents, slot_views, with_coords)
+                                     glimpse, refiner_inputs, slot_latents, slot_views, snap_shapes, with_coords)
 from prismonet.render import SceneParams
 
 
@@ -99,6 +99,51 @@ def test_keep_bar_moves():
         new = apply_correction(p, d, torch.ones(3), (0.25, 0.9), keep=True, keep_above=bar)
         assert new.active[0].tolist() == want, bar
         assert new.position[0, :, 0].tolist() == pytest.approx([0.1, 1.1])
+
+
+def test_snap_shapes_hand_computed():
+    """``snap_shapes``: each slot's shape latent becomes its nearest code (Euclidean), the rest of the slot as it was."""
+    p = two_slots()
+    p.z_sh = torch.zeros(1, 2, 2)
+    p.z_sh[0, 0] = torch.tensor([0.9, 0.2])   # nearest (1, 0): distance 0.22 against 0.92 and 1.3
+    p.z_sh[0, 1] = torch.tensor([-0.1, 0.6])  # nearest (0, 1): 0.41 against 1.28 and 1.22
+    p.active = torch.tensor([[True, False]])
+    codes = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, -1.0]])
+    new = snap_shapes(p, codes)
+    assert new.z_sh.tolist() == [[[1.0, 0.0], [0.0, 1.0]]]
+    assert new.z_sh.shape == p.z_sh.shape and p.z_sh[0, 0, 0].item() == pytest.approx(0.9)  # the input is left alone
+    for name in ("z_tex", "position", "cos_sin", "scale", "active"):
+        assert torch.equal(getattr(new, name), getattr(p, name))
+
+
+def test_refiner_snap_and_keep_bar_in_the_model(shipped):
+    """``refiner_snap_shape``: after the pass every shape latent is a training code of the prior, and the positions are the
+    plain pass's; ``refiner_keep_logit``: a slot whose logit (here 0.5 for all) is at or below the bar is dropped.
+    Both need a refinement pass."""
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.refiner_fit import with_refiner
+
+    model, b, _ = shipped
+    runs = {}
+    for name, extra in (("plain", {}), ("snap", {"refiner_snap_shape": True}), ("bar", {"refiner_keep_logit": 0.5})):
+        m = with_refiner(model, refiner_keep=True, refiner_shape=True, **extra).eval()
+        with torch.no_grad():  # the last layer's weights are zero: the bias is every slot's output
+            m.refiner.head[-1].bias[0] = 0.1  # every slot moves in x
+            m.refiner.head[-1].bias[-1] = 0.5  # keep logit 0.5: kept at the default bar 0, dropped at a bar of 0.5
+            runs[name] = m(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params
+    codes = model.prior.latents
+    plain, snap, bar = runs["plain"], runs["snap"], runs["bar"]
+    def is_code(z):  # (B, N): the slot's latent equals a row of codes exactly
+        return (z[..., None, :] == codes).all(-1).any(-1)
+
+    assert not bool(is_code(plain.z_sh).all()) and bool(is_code(snap.z_sh).all())
+    assert torch.equal(snap.position, plain.position) and torch.equal(snap.active, plain.active)
+    assert bool(plain.active.any()) and not bool(bar.active.any())
+    for fields in ({"refiner_snap_shape": True}, {"refiner_keep_logit": 1.0}):
+        with pytest.raises(ValueError, match="need refine_passes"):
+            ModelConfig(**fields)
+    with pytest.raises(ValueError, match="refiner_keep_logit must be a finite"):
+        ModelConfig(refine_passes=1, refiner_keep_logit=float("nan"))
 
 
 def test_correction_gradcheck():
@@ -647,7 +692,8 @@ def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
     for name, extra, says in (("clevr3", ["--anchor-shade", "0.5"], "--anchor-shade needs an anchored model"),
                               ("tabletop_keep", ["--anchor-shade", "1.5"], "anchor_shade_min must be in"),
-                              ("tabletop_keep", ["--reanchor-keep", "x"], "--reanchor-keep: expected a number")):
+                              ("tabletop_keep", ["--reanchor-keep", "x"], "--reanchor-keep: expected a number"),
+                              ("clevr3_glimpse", ["--keep-logit", "1"], "--keep-logit needs a refiner with a keep output")):
         r = subprocess.run([sys.executable, str(script), name, "2", str(tmp_path / "out"), *extra], capture_output=True, text=True)
         assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "out").exists()

@@ -84,6 +84,14 @@ class ModelConfig:
     """The refinement passes turn each slot's yaw as the refiner says (inference; beyond the paper). ``False`` keeps the
     encoder's yaw: for an encoder taught yaws by L_pose, whose refiner was fitted to a weakly supervised search's yaws
     (EVALUATION.md, "Session 59"). The refiner's fit ignores it."""
+    refiner_keep_logit: float = 0.0
+    """With ``refiner_keep`` (inference; beyond the paper): a slot is dropped where its keep logit is at or below this, in
+    every refinement pass (0: the logit's own decision, as fitted). A higher bar trades recall for precision."""
+    refiner_snap_shape: bool = False
+    """After each refinement pass at inference (beyond the paper), each slot's shape latent is replaced by the prior's
+    nearest training code (Euclidean, in latent space; ``refiner.snap_shapes``). For a refiner fitted to targets whose
+    shapes are training codes (``distill --search-shapes``), whose steps can land between codes and draw a shrunken
+    object. The refiner's fit ignores it."""
     color_step: bool = False
     """A learnt colour step at inference (beyond the paper; ``prismonet.model.color_step``): after the refinement
     passes, one more look at every slot (through the refiner's view: ``refiner_glimpse``, ``refiner_coords``) moves
@@ -147,6 +155,10 @@ class ModelConfig:
             raise ValueError(f"reanchor_steps must be >= 0 and needs anchor and refine_passes >= 1, got {self.reanchor_steps}")
         if self.reanchor_keep_logit is not None and not math.isfinite(self.reanchor_keep_logit):
             raise ValueError(f"reanchor_keep_logit must be a finite number or None (never drop), got {self.reanchor_keep_logit}")
+        if not math.isfinite(self.refiner_keep_logit):
+            raise ValueError(f"refiner_keep_logit must be a finite number, got {self.refiner_keep_logit}")
+        if (self.refiner_snap_shape or self.refiner_keep_logit != 0.0) and not self.refine_passes:
+            raise ValueError("refiner_snap_shape and refiner_keep_logit act in the refinement passes: they need refine_passes >= 1")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):
             raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
         if not 0.0 <= self.refiner_glimpse <= 1.0:

@@ -17,7 +17,7 @@ from prismonet.model.color_step import ColorStep
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
-from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, active_rows, apply_correction, on_rows, refiner_inputs, split_keep
+from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, active_rows, apply_correction, on_rows, refiner_inputs, snap_shapes, split_keep
 from prismonet.model.stopping import BoundStop
 from prismonet.model.texture import TextureField
 from prismonet.model.unexplained import AnchorRule, find_anchors
@@ -312,7 +312,7 @@ class PriSMONet(nn.Module):
         it is): each corrects every active slot of ``out`` from its render against ``image``, then renders all
         again."""
         for _ in range(self.cfg.refine_passes):
-            out = self._refine_pass(out, image, K, T_world_cam)
+            out = self._refine_pass(out, image, K, T_world_cam, keep_above=self.cfg.refiner_keep_logit)
         return out
 
     def _refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
@@ -327,6 +327,8 @@ class PriSMONet(nn.Module):
         subject = params if only is None else replace(params, active=only)
         new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above,
                                self.cfg.refiner_turn)
+        if self.cfg.refiner_snap_shape and not self.training:
+            new = snap_shapes(new, self.prior.latents)
         if only is not None:
             before = params.active if params.active is not None else torch.ones_like(only)
             new.active = (before & ~only) | new.active  # the subjects' activity after the pass, the others' as before

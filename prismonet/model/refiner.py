@@ -17,6 +17,8 @@ with hundreds of trial renders.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -158,6 +160,14 @@ def slot_latents(params: SceneParams, pos_offset: torch.Tensor, pos_scale: torch
 def split_keep(delta: torch.Tensor, keep: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The refiner's raw output without its keep logit, and the ``(R,)`` logit (``None`` without ``keep``)."""
     return (delta[..., :-1], delta[..., -1]) if keep else (delta, None)
+
+
+def snap_shapes(params: SceneParams, codes: torch.Tensor) -> SceneParams:
+    """``params`` with each slot's shape latent replaced by the nearest row of ``codes (S, D_sh)`` (Euclidean; the
+    first on a tie), the prior's training codes: every slot then draws one of the prior's shapes."""
+    z = params.z_sh
+    nearest = torch.cdist(z.reshape(-1, z.shape[-1]), codes.to(z)).argmin(1)
+    return replace(params, z_sh=codes.to(z)[nearest].reshape(z.shape))
 
 
 def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.Tensor,
