@@ -89,9 +89,10 @@ class ModelConfig:
     every refinement pass (0: the logit's own decision, as fitted). A higher bar trades recall for precision."""
     refiner_snap_shape: bool = False
     """After each refinement pass at inference (beyond the paper), each slot's shape latent is replaced by the prior's
-    nearest training code (Euclidean, in latent space; ``refiner.snap_shapes``). For a refiner fitted to targets whose
-    shapes are training codes (``distill --search-shapes``), whose steps can land between codes and draw a shrunken
-    object. The refiner's fit ignores it."""
+    nearest training code (Euclidean, in latent space; ``refiner.snap_shapes``). For a refiner fitted to targets
+    searched at the true poses (``distill --true-poses --search-shapes N``), whose codes are mostly the objects' own:
+    its steps can land between codes and draw a shrunken object. On weakly supervised refiners it costs accuracy
+    (EVALUATION.md, "Session 65"). The refiner's fit ignores it."""
     color_step: bool = False
     """A learnt colour step at inference (beyond the paper; ``prismonet.model.color_step``): after the refinement
     passes, one more look at every slot (through the refiner's view: ``refiner_glimpse``, ``refiner_coords``) moves
