@@ -166,8 +166,10 @@ def snap_shapes(params: SceneParams, codes: torch.Tensor) -> SceneParams:
     """``params`` with each slot's shape latent replaced by the nearest row of ``codes (S, D_sh)`` (Euclidean; the
     first on a tie), the prior's training codes: every slot then draws one of the prior's shapes."""
     z = params.z_sh
-    nearest = torch.cdist(z.reshape(-1, z.shape[-1]), codes.to(z)).argmin(1)
-    return replace(params, z_sh=codes.to(z)[nearest].reshape(z.shape))
+    codes = codes.to(z)
+    # exact distances, as the search's shape trials take them: cdist's matmul path leaves a code ~1e-4 from itself
+    nearest = torch.cdist(z.reshape(-1, z.shape[-1]), codes, compute_mode="donot_use_mm_for_euclid_dist").argmin(1)
+    return replace(params, z_sh=codes[nearest].reshape(z.shape))
 
 
 def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.Tensor,
