@@ -756,3 +756,42 @@ def test_fit_refiner_with_the_color_term(shipped, tmp_path):
         start[w] = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t2", tmp_path / f"run{w}", c, progress=False)["held_out_start"]
     assert start[1.0] > start[0.0] + 1e-4
     assert "color" not in load_model(tmp_path / "run0.0")[1]["refiner_fit"]["fit"]
+
+
+def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path):
+    """``scripts/encoder_only.py``: the shipped model (a refiner and a colour step) without both decodes exactly as the
+    model with ``refine=False``, and saved, it loads as a model of its own; a model with neither is refused in one line,
+    nothing written."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from prismonet.model.io import load_model
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    sys.path.insert(0, str(scripts))
+    try:
+        from encoder_only import encoder_only
+    finally:
+        sys.path.remove(str(scripts))
+    model, b, _ = shipped
+    assert model.cfg.refine_passes and model.cfg.color_step  # what the check needs
+    enc = encoder_only(model).eval()
+    assert enc.cfg.refine_passes == 0 and not enc.cfg.color_step
+    assert not any(k.startswith(("refiner.", "color_step.")) for k in enc.state_dict())
+    with torch.no_grad():
+        a = enc(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        ref = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+    for name in ("position", "scale", "cos_sin", "z_tex", "z_sh"):
+        assert torch.equal(getattr(a.latents.params, name), getattr(ref.latents.params, name))
+    assert torch.equal(a.composite.image, ref.composite.image)
+    r = subprocess.run([sys.executable, str(scripts / "encoder_only.py"), "shipped", str(tmp_path / "enc")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    loaded, info = load_model(tmp_path / "enc")
+    assert info["encoder_of"] == "shipped" and loaded.cfg.refine_passes == 0
+    assert all(torch.equal(v, enc.state_dict()[k]) for k, v in loaded.state_dict().items())
+    r = subprocess.run([sys.executable, str(scripts / "encoder_only.py"), str(tmp_path / "enc"), str(tmp_path / "again")],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "it is an encoder already" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "again").exists()
