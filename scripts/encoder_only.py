@@ -13,18 +13,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from prismonet.model.io import CheckpointError, load_model, rebuilt, save_model
-
-LEARNT_PARTS = {"refiner.": {"refine_passes": 0, "refiner_keep_logit": 0.0, "refiner_snap_shape": False},
-                "color_step.": {"color_step": False}}
-"""The weights' prefix of each learnt part that follows the encoder, and the config fields that turn it off."""
+from prismonet.model.color_step_fit import without_color_step
+from prismonet.model.io import CheckpointError, load_model, save_model
+from prismonet.model.refiner_fit import with_refiner
 
 
 def encoder_only(model):
-    """``model`` without its refiner and colour step (the same object when it has neither)."""
-    for prefix, fields in LEARNT_PARTS.items():
-        if any(k.startswith(prefix) for k in model.state_dict()):
-            model = rebuilt(model, prefix, **fields)
+    """``model`` without its colour step and refiner (the same object when it has neither): the project's own
+    ``without_color_step``, then ``with_refiner`` with no passes (the inference-only refiner settings back at their
+    defaults, which ``ModelConfig`` requires without passes)."""
+    if model.cfg.color_step:
+        model = without_color_step(model)
+    if model.cfg.refine_passes:
+        model = with_refiner(model, 0, refiner_keep_logit=0.0, refiner_snap_shape=False)
     return model
 
 
