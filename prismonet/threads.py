@@ -121,3 +121,61 @@ class ThreadGovernor:
             self._start_probe()
         elif self._since_probe >= self._wait:
             self._start_probe()
+
+
+def cpu_ticks(stat_text: str) -> tuple[int, int, int] | None:
+    """``(cpus, total ticks, idle ticks)`` from the text of ``/proc/stat`` (idle counts iowait too); ``None`` if it is
+    not in that format."""
+    lines = stat_text.splitlines()
+    head = lines[0].split() if lines else []
+    if len(head) < 6 or head[0] != "cpu" or not all(v.isdigit() for v in head[1:9]):
+        return None
+    ticks = [int(v) for v in head[1:9]]
+    cpus = sum(1 for line in lines if line.startswith("cpu") and line[3:4].isdigit())
+    return cpus, sum(ticks), ticks[3] + ticks[4]
+
+
+def busy_between(a: tuple[int, int, int], b: tuple[int, int, int]) -> float | None:
+    """Cores kept busy between two ``cpu_ticks`` reads (``None`` if no time passed or the CPU count changed)."""
+    if a[0] != b[0] or b[1] <= a[1]:
+        return None
+    total, idle = b[1] - a[1], b[2] - a[2]
+    return a[0] * (total - idle) / total
+
+
+def busy_cores(window_s: float = 0.1, stat: str = "/proc/stat") -> float | None:
+    """How many of this machine's cores other processes kept busy over the next ``window_s`` seconds (this process
+    sleeps meanwhile), from two reads of ``/proc/stat``; ``None`` where that cannot be read, or where it counts other
+    cores than this process may run on (a container that sees the host's)."""
+    import os
+    import time
+
+    def read() -> tuple[int, int, int] | None:
+        try:
+            with open(stat) as f:
+                return cpu_ticks(f.read())
+        except OSError:
+            return None
+
+    if not hasattr(os, "sched_getaffinity"):
+        return None
+    a = read()
+    if a is None or a[0] != len(os.sched_getaffinity(0)):
+        return None
+    time.sleep(window_s)
+    b = read()
+    return None if b is None else busy_between(a, b)
+
+def threads_for_load(cores: int, busy: float | None, default: int) -> int:
+    """Compute threads for a command that starts now: ``default`` (torch's choice) on a quiet machine, fewer where other
+    processes keep cores busy (``busy``, e.g. ``busy_cores()``), never under 1.
+
+    A spinning OpenMP thread whose partner's core is taken waits for it: on this project's 2-core machines an
+    evaluation with 2 threads beside a 2-thread training job ran up to 30x slower than alone (BENCHMARKS.md, "Threads
+    on a shared machine"), where one thread would have taken the free share of the cores. So a command takes only
+    the cores left free, rounded: with 2 cores, 2 threads while others keep under half a core busy, else 1.
+    ``busy=None`` (unknown) keeps ``default``."""
+    if busy is None:
+        return default
+    free = int(cores - busy + 0.5)
+    return max(1, min(default, free))

@@ -21,10 +21,43 @@ CFG = ClevrConfig()
 
 
 def test_clevr_colours_are_the_published_table():
-    assert COLOR_RGB == (
+    from prismonet.data.clevr import CLEVR_COLORS
+
+    assert COLOR_RGB[:8] == (
         (87, 87, 87), (173, 35, 35), (42, 75, 215), (29, 105, 20),
         (129, 74, 25), (129, 38, 192), (41, 208, 208), (255, 238, 51),
     )
+    assert CFG.colors == CLEVR_COLORS == tuple(range(8))  # the default draws CLEVR's eight alone
+
+
+def test_extra_colours_are_drawn_only_when_asked(tmp_path):
+    """``colors`` (``--colors``): white, silver and black objects for real tables, opt-in; the default stream is
+    CLEVR's (``test_varying_object_counts`` checks it against the shipped samples bit for bit)."""
+    from prismonet.cli import main
+    from prismonet.data.dataset import SceneDataset
+
+    cfg = ClevrConfig(num_objects=4, min_objects=1, image_size=24, colors=(8, 10))
+    arrays = render_range(cfg.to_dict(), 0, 0, 12)
+    drawn = {int(c) for i, n in enumerate(arrays["obj_count"]) for c in arrays["obj_color"][i, :n]}
+    assert drawn == {8, 10}
+    # a white object renders grey-white: equal channels, far brighter than CLEVR's grey
+    white = render_range(ClevrConfig(num_objects=1, image_size=32, colors=(8,)).to_dict(), 0, 0, 1)
+    px = white["rgb"][0][white["instance"][0] == 1].astype(np.float64)  # (n, 3), 0-255
+    assert len(px) and np.array_equal(px[:, 0], px[:, 1]) and np.array_equal(px[:, 1], px[:, 2])
+    assert px.max() > 200  # CLEVR's grey, lit fully, stays at 87
+    # read back from a dataset's meta (JSON lists) and rejected when out of range
+    assert ClevrConfig(**{**cfg.to_dict(), "colors": [8, 10]}) == cfg
+    with pytest.raises(ValueError, match="colors: expected colour ids in 0..10"):
+        ClevrConfig(colors=(11,))
+    with pytest.raises(ValueError, match="colors"):
+        ClevrConfig(colors=())
+    # the command line takes names, ids and 'clevr'; a wrong name is one line
+    assert main(["data", "clevr", "--objects", "2", "--colors", "white,9,black", "--split", "0,0,3", "--workers", "1", "--quiet",
+                 "--out", str(tmp_path / "w")]) == 0
+    ds = SceneDataset(tmp_path / "w", "test")
+    assert set(ds.arrays["obj_color"][ds.arrays["obj_color"] >= 0].tolist()) <= {8, 9, 10}
+    assert main(["data", "clevr", "--colors", "clevr,pink", "--out", str(tmp_path / "p")]) == 2
+    assert not (tmp_path / "p").exists()
 
 
 def test_shape_set_has_nine_scalings_per_category():

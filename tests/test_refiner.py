@@ -3,6 +3,7 @@ and its training on distillation targets (learns a known correction, resumes, sa
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -758,22 +759,32 @@ def test_fit_refiner_with_the_color_term(shipped, tmp_path):
     assert "color" not in load_model(tmp_path / "run0.0")[1]["refiner_fit"]["fit"]
 
 
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def _script(name: str):
+    """The module ``scripts/NAME.py`` (the scripts folder is no package)."""
+    import importlib
+    import sys
+
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(SCRIPTS))
+
+
 def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path):
     """``scripts/encoder_only.py``: the shipped model (a refiner and a colour step) without both decodes exactly as the
     model with ``refine=False``, and saved, it loads as a model of its own; a model with neither is refused in one line,
     nothing written."""
     import subprocess
     import sys
-    from pathlib import Path
 
     from prismonet.model.io import load_model
 
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    sys.path.insert(0, str(scripts))
-    try:
-        from encoder_only import encoder_only
-    finally:
-        sys.path.remove(str(scripts))
+    scripts = SCRIPTS
+    encoder_only = _script("encoder_only").encoder_only
     model, b, _ = shipped
     assert model.cfg.refine_passes and model.cfg.color_step  # what the check needs
     enc = encoder_only(model).eval()
@@ -795,3 +806,44 @@ def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path):
                        capture_output=True, text=True)
     assert r.returncode != 0 and "it is an encoder already" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "again").exists()
+
+
+def test_swap_weights_takes_the_sources_parts_and_keeps_the_rest(shipped, tmp_path):
+    """``scripts/swap_weights.py``: a model's encoder replaced by another's (here the shipped encoder, nudged), its
+    refiner and colour step kept; a source with a part the model lacks is refused before anything changes."""
+    import copy
+    import subprocess
+    import sys
+
+    from prismonet.model.io import load_model, save_model
+
+    scripts = SCRIPTS
+    encoder_only, swap_weights = _script("encoder_only").encoder_only, _script("swap_weights").swap_weights
+    model, _, _ = shipped
+    enc = copy.deepcopy(encoder_only(model))
+    with torch.no_grad():
+        for p in enc.encoder.parameters():
+            p.add_(0.01)
+    target = copy.deepcopy(model)
+    names = swap_weights(target, enc)
+    assert set(names) == set(enc.state_dict()) and not any(n.startswith(("refiner.", "color_step.")) for n in names)
+    after = target.state_dict()
+    for k, v in model.state_dict().items():
+        if k.startswith("encoder."):
+            assert torch.equal(after[k], v + 0.01)
+        else:
+            assert torch.equal(after[k], v), k  # refiner, colour step, background encoder, texture field: the model's
+    before = {k: v.clone() for k, v in enc.state_dict().items()}
+    with pytest.raises(ValueError, match="the model has no weight 'refiner"):
+        swap_weights(enc, model)
+    assert all(torch.equal(v, before[k]) for k, v in enc.state_dict().items())
+    save_model(enc, tmp_path / "enc" / "model", {})
+    r = subprocess.run([sys.executable, str(scripts / "swap_weights.py"), "shipped", str(tmp_path / "enc"), str(tmp_path / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    loaded, info = load_model(tmp_path / "out")
+    assert "weights_from" in info and loaded.cfg == model.cfg
+    assert all(torch.equal(v, after[k]) for k, v in loaded.state_dict().items())
+    r = subprocess.run([sys.executable, str(scripts / "swap_weights.py"), str(tmp_path / "enc"), "shipped", str(tmp_path / "bad")],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "swap_weights: error: the model has no weight" in r.stderr and not (tmp_path / "bad").exists()

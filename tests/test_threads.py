@@ -88,3 +88,85 @@ def test_probes_that_keep_the_choice_back_off_and_a_change_resets_the_wait():
 def test_rejects_bad_settings(kw):
     with pytest.raises(ValueError):
         ThreadGovernor(set_threads=lambda n: None, **kw)
+
+
+# --- the command line's start-up thread count (prismonet.threads.threads_for_load, prismonet.cli._set_threads) ---
+
+STAT = """cpu  {u} 0 {s} {i} {w} 0 0 0 0 0
+cpu0 1 0 1 1 0 0 0 0 0 0
+cpu1 1 0 1 1 0 0 0 0 0 0
+intr 12345
+"""
+
+
+def test_cpu_ticks_and_busy_cores_by_hand():
+    from prismonet.threads import busy_between, cpu_ticks
+
+    a = cpu_ticks(STAT.format(u=1000, s=200, i=5000, w=100))
+    assert a == (2, 6300, 5100)
+    # 200 ticks pass on the 2 cpus: 120 user + 30 system busy, 40 idle + 10 iowait -> 150 / 200 of 2 cores
+    b = cpu_ticks(STAT.format(u=1120, s=230, i=5040, w=110))
+    assert busy_between(a, b) == pytest.approx(1.5)
+    assert busy_between(a, a) is None  # no time passed
+    assert busy_between(a, (4, 7000, 5200)) is None  # another cpu count
+    assert cpu_ticks("") is None and cpu_ticks("intr 1 2 3 4 5 6\n") is None and cpu_ticks("cpu a b c d e f g h\n") is None
+
+
+@pytest.mark.parametrize("busy, want", [(None, 2), (0.0, 2), (0.4, 2), (0.6, 1), (1.0, 1), (2.0, 1), (3.5, 1)])
+def test_threads_for_load_on_two_cores(busy, want):
+    from prismonet.threads import threads_for_load
+
+    assert threads_for_load(2, busy, 2) == want
+
+
+def test_threads_for_load_takes_the_free_cores_up_to_the_default():
+    from prismonet.threads import threads_for_load
+
+    assert threads_for_load(16, 5.2, 16) == 11
+    assert threads_for_load(16, 0.0, 8) == 8  # never more than torch's own choice
+    assert threads_for_load(16, 15.9, 16) == 1
+
+
+def test_prismonet_threads_sets_the_count_and_a_bad_value_is_one_line(monkeypatch):
+    import torch
+
+    from prismonet.cli import _set_threads
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setenv("PRISMONET_THREADS", "1")
+        _set_threads()
+        assert torch.get_num_threads() == 1
+        monkeypatch.setenv("PRISMONET_THREADS", "two")
+        with pytest.raises(ValueError, match="PRISMONET_THREADS must be a positive whole number"):
+            _set_threads()
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_command_line_run_on_a_loaded_machine_takes_one_thread(monkeypatch, capsys):
+    """``main()`` as the command line calls it (no argv) measures the load; a test's ``main([...])`` does not."""
+    import sys
+
+    import torch
+
+    import prismonet.threads as threads
+    from prismonet.cli import main
+
+    import os
+
+    before = torch.get_num_threads()
+    calls = []
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    monkeypatch.setattr(threads, "busy_cores", lambda *a, **k: calls.append(1) or float(cores))  # every core busy
+    monkeypatch.delenv("PRISMONET_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    try:
+        torch.set_num_threads(2)
+        assert main(["data", "verify", "/nonexistent/data"]) == 2 and not calls  # argv given: untouched
+        monkeypatch.setattr(sys, "argv", ["prismonet", "data", "verify", "/nonexistent/data"])
+        main()
+        assert calls and torch.get_num_threads() == 1
+        assert f"other processes keep {cores:.1f} cores busy: running on 1 thread" in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(before)

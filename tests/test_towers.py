@@ -80,7 +80,7 @@ def test_tower_config_is_checked_and_read_back():
     with pytest.raises(ValueError, match="cube"):
         TowerConfig(shape_id=0)  # a sphere does not stack
     with pytest.raises(ValueError, match="colour"):
-        TowerConfig(colors=(9,))
+        TowerConfig(colors=(11,))  # ids 0-10: CLEVR's eight, then white, silver, black
     with pytest.raises(ValueError, match="offset"):
         TowerConfig(offset=1.5)
     back = ClevrConfig(**{**BLOCK_TOWERS.to_dict(), "towers": {**BLOCK_TOWERS.to_dict()["towers"], "colors": [1, 2]}})

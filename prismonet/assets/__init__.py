@@ -95,6 +95,7 @@ MODELS = {
     "tabletop": "tabletop_model",
     "tabletop_anchor": "tabletop_anchor_model",
     "tabletop_keep": "tabletop_keep_model",
+    "tabletop_wide": "tabletop_wide_model",
     "blocks": "blocks_model",
     "blocks_keep": "blocks_keep_model",
 }
@@ -141,6 +142,7 @@ MODEL_SAMPLES = {
     "tabletop": "samples/tabletop",
     "tabletop_anchor": "samples/tabletop",
     "tabletop_keep": "samples/tabletop",
+    "tabletop_wide": "samples/tabletop",
     "blocks": "samples/stacks",
     "blocks_keep": "samples/stacks",
 }

@@ -14,7 +14,9 @@ the pipeline, each building its own sub-parser:
 ========================  =====================================================================
 
 Every command runs with freed memory kept for reuse (``prismonet.allocator``; ``PRISMONET_MALLOC=default`` turns it
-off). Every command reports a bad input as one line, ``prismonet: error: ...``, and exit status 2: output
+off). Run from the command line, every command first takes only the cores other processes leave free
+(``_set_threads``; ``PRISMONET_THREADS=N`` or ``OMP_NUM_THREADS`` choose instead). Every command reports a bad
+input as one line, ``prismonet: error: ...``, and exit status 2: output
 paths are checked before any work (each sub-parser declares them as ``outputs``), the library's
 typed errors become that line here, and a command that fails leaves no empty output folder behind.
 """
@@ -74,6 +76,36 @@ def _checked_outputs(args) -> list[Path]:
     return new_dirs
 
 
+def _set_threads() -> None:
+    """Use only the cores other processes leave free (``prismonet.threads.threads_for_load``): two spinning threads
+    beside a busy process are slower than one. ``PRISMONET_THREADS=N`` sets the count; with ``OMP_NUM_THREADS`` set,
+    torch's count is left as it is. Commands that choose their own (``train``'s ``threads``, ``bench``) still do."""
+    import os
+
+    import torch
+
+    from prismonet.threads import busy_cores, threads_for_load
+
+    forced = os.environ.get("PRISMONET_THREADS", "").strip()
+    if forced:
+        if not forced.isdigit() or int(forced) < 1:
+            raise ValueError(f"PRISMONET_THREADS must be a positive whole number, got {forced!r}")
+        torch.set_num_threads(int(forced))
+        return
+    if os.environ.get("OMP_NUM_THREADS"):
+        return
+    default = torch.get_num_threads()
+    if default < 2:
+        return
+    busy = busy_cores()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or default)
+    n = threads_for_load(cores, busy, default)
+    if n < default:
+        print(f"prismonet: other processes keep {busy:.1f} cores busy: running on {n} thread{'s' * (n > 1)} "
+              f"(PRISMONET_THREADS=N to choose)", file=sys.stderr)
+        torch.set_num_threads(n)
+
+
 def _parse(argv: list[str] | None):
     """``(args, None)``, or ``(None, exit status)`` for ``--help`` (0) and a bad argument (2, one line printed)."""
     try:
@@ -100,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         return status
     new_dirs: list[Path] = []
     try:
+        if argv is None:  # the command line (a caller passing argv, e.g. a test, keeps its own threads)
+            _set_threads()
         keep_freed_memory()  # every command: no page faults for buffers a loop frees and allocates again
         new_dirs = _checked_outputs(args)
         rc = args.func(args)

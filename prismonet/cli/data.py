@@ -62,11 +62,31 @@ def _randomize(args):
     return RandomizeConfig(**over)
 
 
+def _colors(text: str | None) -> tuple[int, ...]:
+    """``--colors``: comma-separated colour names or ids of ``COLOR_RGB`` (default: CLEVR's eight)."""
+    from prismonet.data.clevr import CLEVR_COLORS, COLOR_NAMES
+
+    if text is None:
+        return CLEVR_COLORS
+    ids = []
+    for item in text.split(","):
+        item = item.strip().lower()
+        if item.isdigit() and int(item) < len(COLOR_NAMES):
+            ids.append(int(item))
+        elif item in COLOR_NAMES:
+            ids.append(COLOR_NAMES.index(item))
+        elif item == "clevr":
+            ids.extend(CLEVR_COLORS)
+        else:
+            raise ValueError(f"--colors: {item!r} is not a colour; expected names or ids of {', '.join(COLOR_NAMES)} (or 'clevr')")
+    return tuple(dict.fromkeys(ids))
+
+
 def cmd_clevr(args) -> int:
     from prismonet.data.clevr import ClevrConfig
     from prismonet.data.generate import generate_clevr
 
-    cfg = ClevrConfig(num_objects=args.objects, min_objects=args.min_objects, area_half=args.area, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
+    cfg = ClevrConfig(colors=_colors(args.colors), num_objects=args.objects, min_objects=args.min_objects, area_half=args.area, image_size=args.size, depth_noise_eta=1e-3 if args.noisy_depth else 0.0,
                       random_height=args.random_height, full_rotation=args.full_rotation, camera_jitter=args.camera_jitter,
                       shapes=args.shapes, shape_split=args.shape_split, randomize=_randomize(args), cast_shadows=args.shadows)
     meta = generate_clevr(args.out, cfg, split=_scene_split(args), seed=args.seed, workers=args.workers, progress=not args.quiet)
@@ -82,7 +102,7 @@ BLOCK_SCALES = (0.3, 0.65)
 def cmd_towers(args) -> int:
     from dataclasses import replace
 
-    from prismonet.data.clevr import BLOCK_TOWERS, COLOR_RGB
+    from prismonet.data.clevr import BLOCK_TOWERS, CLEVR_COLORS
     from prismonet.data.generate import generate_clevr
     from prismonet.data.stacks import platforms
     from prismonet.shapes.library import CLEVR, shape_library
@@ -99,7 +119,7 @@ def cmd_towers(args) -> int:
             raise ValueError(f"--shapes {args.shapes}: not a block set (its models keep their own colours); make one with "
                              "`prismonet shapes blocks --out FOLDER`")
         scales = BLOCK_SCALES if args.scale is None else args.scale
-        towers = replace(towers, colors=tuple(range(len(COLOR_RGB))), platform_share=args.platforms,
+        towers = replace(towers, colors=CLEVR_COLORS, platform_share=args.platforms,
                          platform_scale=towers.platform_scale if args.platform_scale is None else args.platform_scale)
         cfg = replace(cfg, shapes=args.shapes, towers=towers, scale_range=scales,
                       area_half=args.area if args.area is not None else cfg.area_half)
@@ -209,6 +229,9 @@ def _add_clevr(dsub) -> None:
     p.add_argument("--shapes", default="clevr", help="'clevr' (default) or a folder made by 'shapes import-furniture': "
                                                      "its meshes, in their own colours")
     p.add_argument("--shape-split", choices=("seen", "unseen"), default="seen", help="which models of an imported folder")
+    p.add_argument("--colors", metavar="C,C,...",
+                   help="object colours drawn from, by name or id: CLEVR's gray, red, blue, green, brown, purple, cyan, yellow "
+                        "(0-7, the default) and white, silver, black (8-10, for real tables); 'clevr' stands for the first eight")
     p.set_defaults(func=cmd_clevr, outputs=[("out", "new_dir")])
 
 

@@ -22,7 +22,7 @@ from prismonet.shapes.library import CLEVR, shape_library
 
 GENERATOR_VERSION = "clevr-1"
 
-COLOR_NAMES: tuple[str, ...] = ("gray", "red", "blue", "green", "brown", "purple", "cyan", "yellow")
+COLOR_NAMES: tuple[str, ...] = ("gray", "red", "blue", "green", "brown", "purple", "cyan", "yellow", "white", "silver", "black")
 COLOR_RGB: tuple[tuple[int, int, int], ...] = (
     (87, 87, 87),
     (173, 35, 35),
@@ -32,7 +32,14 @@ COLOR_RGB: tuple[tuple[int, int, int], ...] = (
     (129, 38, 192),
     (41, 208, 208),
     (255, 238, 51),
+    (240, 240, 240),
+    (185, 185, 190),
+    (25, 25, 25),
 )
+"""CLEVR's eight colours (ids 0-7, the paper's), then three that real tables hold and CLEVR lacks (ids 8-10: white,
+silver, black; only with ``ClevrConfig.colors``)."""
+CLEVR_COLORS: tuple[int, ...] = tuple(range(8))
+"""The colour ids CLEVR draws from (the default palette)."""
 
 CLEVR_CAMERA_EYE = (7.4811, -6.5076, 5.3437)
 """CLEVR's camera position (from its base scene), looking at the world origin."""
@@ -168,6 +175,9 @@ class ClevrConfig:
     """Block towers instead of scattered objects (``prismonet.data.towers``); see ``BLOCK_TOWERS``."""
     randomize: RandomizeConfig | None = None
     """Per-scene ground colour, light and camera (``RandomizeConfig``); None: fixed, as the paper."""
+    colors: tuple[int, ...] = CLEVR_COLORS
+    """Colour ids (into ``COLOR_RGB``) the objects draw from, uniformly; the default, CLEVR's eight, gives the scenes it
+    always gave. Ids 8-10 (white, silver, black) are for models meant for real tables, where such objects occur."""
     shapes: str = CLEVR
     """Shape library (``prismonet.shapes.library``): ``"clevr"``, or a folder of imported meshes, whose
     objects keep their own colours."""
@@ -192,6 +202,9 @@ class ClevrConfig:
             raise ValueError(f"area_half must be positive, got {self.area_half}")
         if not (math.isfinite(self.camera_jitter) and self.camera_jitter >= 0):
             raise ValueError(f"camera_jitter must be a finite number >= 0, got {self.camera_jitter}")
+        object.__setattr__(self, "colors", tuple(self.colors))  # a list when read back from a dataset's meta
+        if not self.colors or any(not 0 <= c < len(COLOR_RGB) for c in self.colors):
+            raise ValueError(f"colors: expected colour ids in 0..{len(COLOR_RGB) - 1} ({', '.join(COLOR_NAMES)}), got {self.colors}")
 
     @property
     def ground_z(self) -> float:
@@ -342,7 +355,7 @@ def sample_scene(rng: np.random.Generator, cfg: ClevrConfig, camera: Camera | No
                 radius = scale * (spec.bounding_radius() if use_ball else spec.footprint_radius())
                 centre = np.array([xy[0], xy[1], z]) if three_d else np.array([xy[0], xy[1], 0.0])
                 if all(np.linalg.norm(centre - c) >= radius + r + cfg.min_gap for c, r in zip(centres, radii)):
-                    color_id = -1 if lib.own_colors else int(rng.integers(len(COLOR_RGB)))
+                    color_id = -1 if lib.own_colors else cfg.colors[int(rng.integers(len(cfg.colors)))]
                     objects.append(ObjectSpec(spec.shape_id, spec.category_id, color_id, scale, (float(xy[0]), float(xy[1]), z), yaw,
                                               tuple(axis), cfg.shapes, cfg.shape_split))
                     centres.append(centre)
