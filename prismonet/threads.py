@@ -166,6 +166,7 @@ def busy_cores(window_s: float = 0.1, stat: str = "/proc/stat") -> float | None:
     b = read()
     return None if b is None else busy_between(a, b)
 
+
 def threads_for_load(cores: int, busy: float | None, default: int) -> int:
     """Compute threads for a command that starts now: ``default`` (torch's choice) on a quiet machine, fewer where other
     processes keep cores busy (``busy``, e.g. ``busy_cores()``), never under 1.

@@ -97,9 +97,10 @@ def _set_threads() -> None:
     default = torch.get_num_threads()
     if default < 2:
         return
-    busy = busy_cores()
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or default)
-    n = threads_for_load(cores, busy, default)
+    busy = busy_cores()  # None where it cannot be measured (no /proc/stat, or no sched_getaffinity): keep torch's count
+    if busy is None:
+        return
+    n = threads_for_load(len(os.sched_getaffinity(0)), busy, default)
     if n < default:
         print(f"prismonet: other processes keep {busy:.1f} cores busy: running on {n} thread{'s' * (n > 1)} "
               f"(PRISMONET_THREADS=N to choose)", file=sys.stderr)
