@@ -57,7 +57,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     (``pose_frame = "camera"``); the others know one camera. ``elevation_hints`` (``{photo stem: degrees}``,
     e.g. the labels' ``elevation_deg``): used as ``elevation`` when that is not given and the model takes
     the camera as an input, ignored otherwise."""
-    if tiling is not None and (tiling.target_px is not None or (tiling.tiles > 1 and tiling.below_px is not None)):
+    if tiling is not None and tiling.reads_whole_first:
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
                                   inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
@@ -183,25 +183,25 @@ def _view_record(net, o, b, j, name, rec, photo, elev, psnr, per_view, fp, cfg, 
 
 def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
     """``TileConfig.below_px`` or ``target_px``: read every photo whole first (into ``out/whole``), then in tiles those
-    whose objects are small (or none found), as many as ``below_px``'s fixed count or ``target_px``'s zoom ask; each
-    record says which reading it is (``reading``) and the whole reading's median object size."""
+    whose objects are small (or none found, or read poorly), as many as ``TileConfig.tiles_after`` asks; each record
+    says which reading it is (``reading``, ``tiles_across``) and the whole reading's median object size and PSNR."""
     from dataclasses import replace
 
     out = Path(out)
     whole = reconstruct_photos(photos, out / "whole", tiling=None, **kw)
     size = {r["photo"]: float(np.median(r["detections"]["scores"])) if r["detections"]["scores"] else 0.0 for r in whole}
-    if tiling.target_px is not None:
-        count = {p: tiling.tiles_for(m) for p, m in size.items()}
-    else:
-        count = {p: tiling.tiles if m < tiling.below_px else 1.0 for p, m in size.items()}
+    psnr = {r["photo"]: (r.get("psnr") or {}).get("encoder") for r in whole}
+    count = {r["photo"]: tiling.tiles_after(size[r["photo"]], len(r["detections"]["scores"]), psnr[r["photo"]]) for r in whole}
     tiled = {}
     for n in sorted({c for c in count.values() if c > 1}):
         group = [str(p) for p in photos if count[str(p)] == n]
-        tiled.update({r["photo"]: r for r in reconstruct_photos(group, out, tiling=replace(tiling, tiles=n, below_px=None, target_px=None), **kw)})
+        plain = replace(tiling, tiles=n, below_px=None, target_px=None, below_psnr=None, fine_tiles=None, fine_below_px=None)
+        tiled.update({r["photo"]: r for r in reconstruct_photos(group, out, tiling=plain, **kw)})
     results = []
     for r in whole:
         rec = tiled.get(r["photo"], r)
-        results.append({**rec, "reading": "tiles" if r["photo"] in tiled else "whole", "whole_median_px": size[r["photo"]]})
+        results.append({**rec, "reading": "tiles" if r["photo"] in tiled else "whole", "tiles_across": count[r["photo"]],
+                        "whole_median_px": size[r["photo"]], "whole_psnr": psnr[r["photo"]]})
     write_atomic(out / "summary.json", json.dumps(results, indent=1))
     return results
 

@@ -47,6 +47,15 @@ class TileConfig:
     below_px: float | None = None
     """Tile only the photos whose whole reading finds objects of a median size under this many visible pixels (of the
     model's view), or that find none; the others keep their whole reading (``None``: tile every photo)."""
+    below_psnr: float | None = None
+    """With ``below_px``: also tile (``tiles`` across) the photos whose whole reading explains them poorly, its
+    reconstruction under this PSNR (dB) against the prepared view (e.g. a table of small, alike objects read as a few
+    blobs)."""
+    fine_tiles: float | None = None
+    """With ``below_px``: read the photos whose whole reading finds objects of a median size under ``fine_below_px``
+    in this many tiles across instead of ``tiles`` (more zoom for the smallest objects)."""
+    fine_below_px: float | None = None
+    """The median size (visible pixels of the model's view) under which ``fine_tiles`` is used."""
 
     def __post_init__(self):
         if self.tiles < 1:
@@ -57,11 +66,45 @@ class TileConfig:
             raise ValueError(f"tile size target: expected a positive number of pixels, got {self.target_px}")
         if self.below_px is not None and not self.below_px > 0:
             raise ValueError(f"tile size rule: expected a positive number of pixels, got {self.below_px}")
+        if self.below_psnr is not None and not self.below_psnr > 0:
+            raise ValueError(f"tile PSNR rule: expected a positive number of dB, got {self.below_psnr}")
+        if (self.fine_tiles is None) != (self.fine_below_px is None):
+            raise ValueError("fine tiles: give both the count and the size under which it is used")
+        if self.fine_tiles is not None and not self.fine_tiles >= 1:
+            raise ValueError(f"fine tiles: expected at least 1, got {self.fine_tiles}")
+        if self.fine_below_px is not None and not self.fine_below_px > 0:
+            raise ValueError(f"fine tile size rule: expected a positive number of pixels, got {self.fine_below_px}")
+        if (self.below_psnr is not None or self.fine_tiles is not None) and (self.below_px is None or self.target_px is not None):
+            raise ValueError("the PSNR and fine-tile rules refine the size rule: "
+                             "give --tile-below (below_px) and no --tile-size (target_px)")
         if self.color not in ("region", "tile"):
             raise ValueError(f"tile colour mapping: expected region or tile, got {self.color!r}")
 
     def record(self) -> dict:
-        return {"tiles": self.tiles, "overlap": self.overlap, "color": self.color, "below_px": self.below_px, "target_px": self.target_px}
+        return {"tiles": self.tiles, "overlap": self.overlap, "color": self.color, "below_px": self.below_px, "target_px": self.target_px,
+                "below_psnr": self.below_psnr, "fine_tiles": self.fine_tiles, "fine_below_px": self.fine_below_px}
+
+    @property
+    def reads_whole_first(self) -> bool:
+        """Whether each photo is read whole first and the count of tiles chosen from that reading."""
+        return self.target_px is not None or (self.below_px is not None and (self.tiles > 1 or self.fine_tiles is not None))
+
+    def tiles_after(self, median_px: float, found: int, psnr: float | None) -> float:
+        """Tiles across for a photo whose whole reading found ``found`` objects of median size ``median_px`` (visible
+        pixels of the model's view) and reconstructs it at ``psnr`` dB (``None``: not measured); 1: keep it whole.
+
+        With ``target_px``, ``tiles_for``. Otherwise, in this order: ``fine_tiles`` where objects were found with a
+        median under ``fine_below_px``; ``tiles`` where none was found, the median is under ``below_px``, or the PSNR
+        is under ``below_psnr``; else 1."""
+        if self.target_px is not None:
+            return self.tiles_for(median_px if found else 0.0)
+        if self.fine_tiles is not None and found > 0 and median_px < self.fine_below_px:
+            return float(self.fine_tiles)
+        if found == 0 or median_px < self.below_px:
+            return float(self.tiles)
+        if self.below_psnr is not None and psnr is not None and psnr < self.below_psnr:
+            return float(self.tiles)
+        return 1.0
 
     def tiles_for(self, median_px: float) -> float:
         """With ``target_px``: the tiles along the shorter side that zoom objects of ``median_px`` to the target

@@ -89,12 +89,15 @@ def test_real_evaluate_in_tiles_finds_a_scene_twice_side_by_side(tmp_path):
     assert any("read as 1 tile across, not 2" in w for w in summary["warnings"])  # 64 px high: one tile across
     # each tile is the scene itself, as the shipped model was trained on it: most objects are found in both
     assert p["box_AR0.5"] >= 0.5
-    # the size rule: objects of a median size under 1e6 px are "small" (tiled); none is under 1 px (kept whole)
-    for below, reading in ((1e6, "tiles"), (1.0, "whole")):
-        r = evaluate_photos(labels, tmp_path / f"rule{below:g}", "shipped", progress=False, box=(0, 0, 128, 64),
-                            tiling=TileConfig(2, 0.0, below_px=below))
-        s = json.loads((tmp_path / f"rule{below:g}" / "summary.json").read_text())[0]
+    # the size rule: objects of a median size under 1e6 px are "small" (tiled); none is under 1 px (kept whole);
+    # the PSNR rule: every reading is under 1,000 dB (tiled)
+    for below, psnr, reading in ((1e6, None, "tiles"), (1.0, None, "whole"), (1.0, 1e3, "tiles")):
+        run = tmp_path / f"rule{below:g}_{psnr}"
+        r = evaluate_photos(labels, run, "shipped", progress=False, box=(0, 0, 128, 64),
+                            tiling=TileConfig(2, 0.0, below_px=below, below_psnr=psnr))
+        s = json.loads((run / "summary.json").read_text())[0]
         assert s["reading"] == reading and s["whole_median_px"] > 1.0 and ("tiles" in s) == (reading == "tiles")
+        assert s["tiles_across"] == (2.0 if reading == "tiles" else 1.0) and 5.0 < s["whole_psnr"] < 60.0
 
 
 def test_tiles_are_refused_with_a_calibration(tmp_path):
@@ -141,3 +144,34 @@ def test_tiles_sized_to_the_objects_by_hand():
     assert tile_boxes((0, 0, 300, 200), cfg.tiles_for(100.0), 0.25)[0][2] == 100
     with pytest.raises(ValueError, match="size target"):
         TileConfig(target_px=0.0)
+
+
+def test_the_whole_reading_picks_the_tiles_by_hand():
+    """``TileConfig.tiles_after``: fine tiles for the smallest objects, the plain count where objects are small, none
+    are found or the reading is poor, else whole; in that order."""
+    cfg = TileConfig(2, below_px=120.0, below_psnr=18.0, fine_tiles=3, fine_below_px=80.0)
+    assert cfg.reads_whole_first
+    assert cfg.tiles_after(60.0, 12, 25.0) == 3.0  # small objects: the finest tiles, however well read
+    assert cfg.tiles_after(80.0, 12, 25.0) == 2.0  # the fine bound is strict
+    assert cfg.tiles_after(100.0, 5, 25.0) == 2.0  # under 120 px
+    assert cfg.tiles_after(0.0, 0, 25.0) == 2.0  # nothing found: the plain count, not the fine one
+    assert cfg.tiles_after(178.0, 3, 16.0) == 2.0  # large blobs, read poorly
+    assert cfg.tiles_after(178.0, 3, 18.0) == 1.0  # the PSNR bound is strict
+    assert cfg.tiles_after(178.0, 3, None) == 1.0  # no PSNR measured: whole
+    plain = TileConfig(2, below_px=120.0)
+    assert plain.tiles_after(178.0, 3, 5.0) == 1.0 and plain.tiles_after(60.0, 3, 30.0) == 2.0
+    assert not TileConfig(2).reads_whole_first and TileConfig(1, below_px=120.0, fine_tiles=3, fine_below_px=80.0).reads_whole_first
+    record = cfg.record()
+    assert record["below_psnr"] == 18.0 and record["fine_tiles"] == 3 and record["fine_below_px"] == 80.0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(below_px=120.0, below_psnr=0.0), "PSNR rule"),
+    (dict(below_px=120.0, fine_tiles=3), "give both"),
+    (dict(below_px=120.0, fine_tiles=0.5, fine_below_px=80.0), "fine tiles"),
+    (dict(below_px=120.0, fine_tiles=3, fine_below_px=-1.0), "fine tile size"),
+    (dict(below_psnr=18.0), "refine the size rule"),
+])
+def test_bad_tile_rules_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        TileConfig(2, **kwargs)

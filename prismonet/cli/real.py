@@ -21,12 +21,14 @@ def box_and_gain(args):
 
 
 def _tiling(args):
-    """``--tiles``, ``--tile-overlap`` and ``--tile-color`` as a ``TileConfig`` (``None``: the whole region at once)."""
+    """The ``--tile*`` options as a ``TileConfig`` (``None``: the whole region at once)."""
     from realdata.tiles import TileConfig
 
-    if args.tiles == 1 and args.tile_size is None:
+    if args.tiles == 1 and args.tile_size is None and args.tiles_fine is None:
         return None
-    return TileConfig(args.tiles, args.tile_overlap, args.tile_color, args.tile_size, args.tile_below)
+    fine = args.tiles_fine
+    return TileConfig(args.tiles, args.tile_overlap, args.tile_color, args.tile_size, args.tile_below, args.tile_psnr_below,
+                      None if fine is None else fine[0], None if fine is None else fine[1])
 
 
 def _warn(recs: list[dict]) -> None:
@@ -169,6 +171,17 @@ def add_parsers(sub) -> None:
     re.set_defaults(func=cmd_evaluate, outputs=[("out", "dir")])
 
 
+def _fine_arg(text: str) -> float:
+    """One of ``--tiles-fine N PX``: a number of at least 1."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (v >= 1 and v < 1e6):
+        raise argparse.ArgumentTypeError(f"expected a number from 1 to 1e6, got {text!r}")
+    return v
+
+
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     from prismonet.files import arg_float, arg_int
 
@@ -193,4 +206,10 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tile-below", type=arg_float(0.0, 1e6, positive=True), metavar="PX",
                    help="tile only the photos whose whole reading finds objects of a median size under PX visible pixels of the "
                         "model's view (or none); the rest keep the whole reading (default: tile every photo)")
+    p.add_argument("--tile-psnr-below", type=arg_float(0.0, 1e3, positive=True), metavar="DB",
+                   help="with --tile-below: also tile the photos whose whole reading's reconstruction is under DB PSNR (read "
+                        "poorly, e.g. many small alike objects taken as a few blobs)")
+    p.add_argument("--tiles-fine", nargs=2, type=_fine_arg, metavar=("N", "PX"),
+                   help="with --tile-below: read the photos whose whole reading finds objects of a median size under PX "
+                        "visible pixels in N tiles across instead of --tiles")
     p.add_argument("--quiet", action="store_true")
