@@ -171,17 +171,6 @@ def add_parsers(sub) -> None:
     re.set_defaults(func=cmd_evaluate, outputs=[("out", "dir")])
 
 
-def _fine_arg(text: str) -> float:
-    """One of ``--tiles-fine N PX``: a number of at least 1."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (v >= 1 and v < 1e6):
-        raise argparse.ArgumentTypeError(f"expected a number from 1 to 1e6, got {text!r}")
-    return v
-
-
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     from prismonet.files import arg_float, arg_int
 
@@ -209,7 +198,7 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tile-psnr-below", type=arg_float(0.0, 1e3, positive=True), metavar="DB",
                    help="with --tile-below: also tile the photos whose whole reading's reconstruction is under DB PSNR (read "
                         "poorly, e.g. many small alike objects taken as a few blobs)")
-    p.add_argument("--tiles-fine", nargs=2, type=_fine_arg, metavar=("N", "PX"),
+    p.add_argument("--tiles-fine", nargs=2, type=arg_float(1.0, 1e6), metavar=("N", "PX"),
                    help="with --tile-below: read the photos whose whole reading finds objects of a median size under PX "
                         "visible pixels in N tiles across instead of --tiles")
     p.add_argument("--quiet", action="store_true")
