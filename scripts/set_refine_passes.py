@@ -12,13 +12,14 @@ rule reads as unexplained in a greyscale image (``none``: grey images read as co
     python3 scripts/set_refine_passes.py tabletop_keep 2 runs/tabletop_keep_noshade --anchor-shade none   # session 48's
 
 ``--keep-logit X`` sets ``refiner_keep_logit`` (the bar a keep logit must beat in every pass; default 0) and
-``--snap-shapes on`` sets ``refiner_snap_shape`` (each pass ends with every shape latent on the prior's nearest
+``--rescue PX`` sets ``refiner_rescue_px`` (a slot the keep output dropped is taken back where it would show at least PX
+pixels the kept slots leave unexplained; ``prismonet.model.rescue``), and ``--snap-shapes on`` sets ``refiner_snap_shape`` (each pass ends with every shape latent on the prior's nearest
 training code):
 
     python3 scripts/set_refine_passes.py tableware_pose_keep 1 runs/s65/tpk_snap --snap-shapes on --keep-logit 1   # session 65's
 
-The copy's record keeps the source's and notes the change (``refine_passes_from``); the passes were chosen on
-the validation split (EVALUATION.md, "Session 46").
+The copy's record keeps the source's and notes the change (``refine_passes_from``; a copy of a copy keeps the earlier
+change under ``before``); the passes were chosen on the validation split (EVALUATION.md, "Session 46").
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ def main() -> None:
                          "('none': off)")
     ap.add_argument("--keep-logit", type=float, default=None, metavar="X",
                     help="also set refiner_keep_logit: in every pass a slot is dropped where its keep logit is <= X (default 0)")
+    ap.add_argument("--rescue", type=int, default=None, metavar="PX",
+                    help="also set refiner_rescue_px: after the passes a dropped slot is taken back where it would show "
+                         "at least PX pixels the kept slots leave unexplained, half of all it shows (0: off)")
     ap.add_argument("--snap-shapes", choices=("on", "off"), default=None,
                     help="also set refiner_snap_shape: after each pass every shape latent becomes the prior's nearest training code")
     ap.add_argument("--anchor-gray", default=None, metavar="T",
@@ -66,6 +70,10 @@ def main() -> None:
         if not model.cfg.refiner_keep:
             raise SystemExit(f"{args.model}: --keep-logit needs a refiner with a keep output")
         fields["refiner_keep_logit"] = args.keep_logit
+    if args.rescue is not None:
+        if not model.cfg.refiner_keep:
+            raise SystemExit(f"{args.model}: --rescue needs a refiner with a keep output")
+        fields["refiner_rescue_px"] = args.rescue
     if args.snap_shapes is not None:
         fields["refiner_snap_shape"] = args.snap_shapes == "on"
     if args.anchor_shade is not None:
@@ -85,8 +93,10 @@ def main() -> None:
     Path(args.out).mkdir(parents=True, exist_ok=True)
     record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
     before = {k: getattr(model.cfg, k) for k in fields}  # the source's values of what changed
-    save_model(new.eval(), Path(args.out) / "model",
-               {**record, "refine_passes_from": {"source": str(args.model), "passes": before.pop("refine_passes"), **before}})
+    change = {"source": str(args.model), "passes": before.pop("refine_passes"), **before}
+    if "refine_passes_from" in record:  # the source was itself a copy: keep that change too, as its "before"
+        change["before"] = record["refine_passes_from"]
+    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": change})
     changes = ", ".join(f"{k} {getattr(model.cfg, k)} -> {v}" for k, v in fields.items() if k != "refine_passes")
     print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes"
           + (f", {changes}" if changes else ""))

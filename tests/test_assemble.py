@@ -72,8 +72,9 @@ def test_a_tiled_photo_gets_one_scene_and_one_mesh(tmp_path):
 
 
 def test_a_photo_whose_tiles_find_nothing_somewhere_still_assembles(tmp_path):
-    """The coffee close-up: some tiles find no object (their scene files hold none); the photo's scene is made from the
-    tiles that do, or is absent when none does."""
+    """The coffee close-up read by ``tabletop_wide``: some tiles find no object (their scene files hold none); the photo's
+    scene is made from the tiles that do, or is absent when none does. (``tabletop_keep`` finds something in every
+    tile since it takes back the slots its keep output drops, session 72.)"""
     from pathlib import Path
 
     from prismonet.scene import LatentScene
@@ -81,7 +82,7 @@ def test_a_photo_whose_tiles_find_nothing_somewhere_still_assembles(tmp_path):
     from realdata.tiles import TileConfig
 
     photo = Path(__file__).resolve().parents[1] / "realdata" / "samples" / "coffee.jpg"
-    r = reconstruct_photos([photo], tmp_path / "r", "tabletop_keep", tiling=TileConfig(2), progress=False, meshes=False)[0]
+    r = reconstruct_photos([photo], tmp_path / "r", "tabletop_wide", tiling=TileConfig(2), progress=False, meshes=False)[0]
     assert any(t["objects_found"] == 0 for t in r["tiles"])
     for t in r["tiles"]:  # a tile's scene file, where it has one, loads
         assert t["scene"] is None or LatentScene.load(t["scene"]).num_objects >= t["objects_found"]

@@ -694,7 +694,9 @@ def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
     for name, extra, says in (("clevr3", ["--anchor-shade", "0.5"], "--anchor-shade needs an anchored model"),
                               ("tabletop_keep", ["--anchor-shade", "1.5"], "anchor_shade_min must be in"),
                               ("tabletop_keep", ["--reanchor-keep", "x"], "--reanchor-keep: expected a number"),
-                              ("clevr3_glimpse", ["--keep-logit", "1"], "--keep-logit needs a refiner with a keep output")):
+                              ("clevr3_glimpse", ["--keep-logit", "1"], "--keep-logit needs a refiner with a keep output"),
+                              ("clevr3_glimpse", ["--rescue", "10"], "--rescue needs a refiner with a keep output"),
+                              ("cars_keep", ["--rescue", "-1"], "refiner_rescue_px must be >= 0")):
         r = subprocess.run([sys.executable, str(script), name, "2", str(tmp_path / "out"), *extra], capture_output=True, text=True)
         assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "out").exists()

@@ -87,6 +87,11 @@ class ModelConfig:
     refiner_keep_logit: float = 0.0
     """With ``refiner_keep`` (inference; beyond the paper): a slot is dropped where its keep logit is at or below this, in
     every refinement pass (0: the logit's own decision, as fitted). A higher bar trades recall for precision."""
+    refiner_rescue_px: int = 0
+    """With ``refiner_keep`` (inference; beyond the paper): after the refinement passes, a slot the keep output dropped
+    is taken back where it would show at least this many pixels of the input that the kept slots leave unexplained in
+    colour, and these are half of all it would show at least (``prismonet.model.rescue``): the keep output, fitted to
+    a search that fits unseen shapes badly, drops slots that are the only ones on their object. 0: off, as fitted."""
     refiner_snap_shape: bool = False
     """After each refinement pass at inference (beyond the paper), each slot's shape latent is replaced by the prior's
     nearest training code (Euclidean, in latent space; ``refiner.snap_shapes``). For a refiner fitted to targets
@@ -156,6 +161,8 @@ class ModelConfig:
             raise ValueError(f"reanchor_steps must be >= 0 and needs anchor and refine_passes >= 1, got {self.reanchor_steps}")
         if self.reanchor_keep_logit is not None and not math.isfinite(self.reanchor_keep_logit):
             raise ValueError(f"reanchor_keep_logit must be a finite number or None (never drop), got {self.reanchor_keep_logit}")
+        if self.refiner_rescue_px < 0 or (self.refiner_rescue_px and not (self.refine_passes and self.refiner_keep)):
+            raise ValueError(f"refiner_rescue_px must be >= 0 and needs refine_passes >= 1 and refiner_keep, got {self.refiner_rescue_px}")
         if not math.isfinite(self.refiner_keep_logit):
             raise ValueError(f"refiner_keep_logit must be a finite number, got {self.refiner_keep_logit}")
         if (self.refiner_snap_shape or self.refiner_keep_logit != 0.0) and not self.refine_passes:

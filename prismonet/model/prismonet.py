@@ -18,7 +18,8 @@ from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
 from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, active_rows, apply_correction, on_rows, refiner_inputs, snap_shapes, split_keep
-from prismonet.model.stopping import BoundStop
+from prismonet.model.rescue import rescue_keep
+from prismonet.model.stopping import BoundStop, StopRule
 from prismonet.model.texture import TextureField
 from prismonet.model.unexplained import AnchorRule, find_anchors
 from prismonet.render import RenderSettings, SceneParams, composite, render_objects
@@ -62,6 +63,9 @@ class ModelOutput:
     """``(B, N)`` the last refinement pass's keep logits (``cfg.refiner_keep``), else ``None``."""
     render: ObjectRender | None = None
     """The last render of all slots together (its hits), when there was one: a recolouring needs no second ray cast."""
+    dropped: torch.Tensor | None = None
+    """``(B, N)`` the slots the keep output dropped in the refinement passes (inactive now; their latents are the
+    refiner's last for them), else ``None``. What a rescue (``cfg.refiner_rescue_px``) weighs."""
 
     def encoder_steps(self) -> torch.Tensor:
         """``(B, N)`` the 0-based encoder step of each slot."""
@@ -302,6 +306,8 @@ class PriSMONet(nn.Module):
         out = self.refine_slots(out, image, K, T_world_cam, ground_z)
         if self.cfg.reanchor_steps and not self.training:
             out = self.reanchor(out, image, K, T_world_cam, ground_z)
+        if self.cfg.refiner_rescue_px and not self.training:
+            out = self.rescue(out, image, K, T_world_cam)
         if self.cfg.color_step and recolor and not self.training:
             out = self.recolor(out, image, K, T_world_cam)
         return out
@@ -333,11 +339,41 @@ class PriSMONet(nn.Module):
             before = params.active if params.active is not None else torch.ones_like(only)
             new.active = (before & ~only) | new.active  # the subjects' activity after the pass, the others' as before
         keep_logit = split_keep(delta, self.cfg.refiner_keep)[1]
+        dropped = out.dropped
+        if keep_logit is not None and new.active is not None:
+            was = subject.active if subject.active is not None else torch.ones_like(new.active)
+            lost = was & ~new.active
+            dropped = lost if dropped is None else (dropped | lost) & ~new.active
         obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps,
-                           None if keep_logit is None else keep_logit.reshape(new.scale.shape), obj)
+                           None if keep_logit is None else keep_logit.reshape(new.scale.shape), obj, dropped)
+
+    @torch.no_grad()
+    def rescue(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
+        """``out`` with the slots the keep output dropped taken back where one would show at least
+        ``cfg.refiner_rescue_px`` pixels of ``image`` that the kept slots leave unexplained in colour, half of all it
+        would show at least (``prismonet.model.rescue``). Only the dropped slots are rendered again."""
+        if out.dropped is None or not bool(out.dropped.any()):
+            return out
+        p = out.latents.params
+        H, W = image.shape[-2:]
+        cand = out.dropped
+        obj = render_objects(self.sdf_fn, self.color_fn, replace(p, active=cand), K, T_world_cam, H, W, self.render_settings())
+        c = cand[:, :, None, None]
+        depth = torch.where(c, obj.depth, out.obj_depth)
+        mask = torch.where(c, obj.mask, out.obj_mask)
+        color = torch.where(c[:, :, None], obj.color, out.obj_color)
+        kept = rescue_keep(StopRule(min_gain=self.cfg.refiner_rescue_px), depth, mask, color, out.latents.bg_color,
+                           out.bg_depth, image, None, p.active, cand)
+        if torch.equal(kept, p.active):
+            return out
+        mask = mask & kept[:, :, None, None]
+        comp = composite(depth, mask, color, out.latents.bg_color, out.bg_depth)
+        # no single render holds every kept slot's hits now: a recolouring casts its rays again (render None)
+        return ModelOutput(SceneLatents(replace(p, active=kept), out.latents.bg_color), comp, depth, mask, color,
+                           out.bg_depth, None, out.presence, out.slot_steps, out.keep_logit, None, cand & ~kept)
 
     @torch.no_grad()
     def reanchor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
@@ -386,7 +422,7 @@ class PriSMONet(nn.Module):
         obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, self.render_settings())
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         out = ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                          obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
+                          obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped)
         for _ in range(self.cfg.refine_passes):
             out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
                                     keep_above=self.cfg.reanchor_keep_logit)
@@ -409,7 +445,7 @@ class PriSMONet(nn.Module):
             color = shade_objects(self.color_fn, new, obj)
             comp = composite(obj.depth, obj.mask, color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, color, out.bg_depth,
-                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj)
+                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped)
 
     def on_slots(self, net: nn.Module, image: torch.Tensor, comp_image: torch.Tensor, instance: torch.Tensor,
                   obj_mask: torch.Tensor, params: SceneParams, K: torch.Tensor, T_world_cam: torch.Tensor,
