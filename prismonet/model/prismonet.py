@@ -371,9 +371,14 @@ class PriSMONet(nn.Module):
             return out
         mask = mask & kept[:, :, None, None]
         comp = composite(depth, mask, color, out.latents.bg_color, out.bg_depth)
-        # no single render holds every kept slot's hits now: a recolouring casts its rays again (render None)
+        render = None
+        if out.render is not None:  # the kept slots' hits and those of the slots taken back: a recolouring casts no ray
+            back = (kept & cand).reshape(-1)[obj.hit_slot]
+            r = out.render
+            render = ObjectRender(depth, mask, color, torch.cat([r.hit_slot, obj.hit_slot[back]]),
+                                  torch.cat([r.hit_pix, obj.hit_pix[back]]), torch.cat([r.hit_x_obj, obj.hit_x_obj[back]]))
         return ModelOutput(SceneLatents(replace(p, active=kept), out.latents.bg_color), comp, depth, mask, color,
-                           out.bg_depth, None, out.presence, out.slot_steps, out.keep_logit, None, cand & ~kept)
+                           out.bg_depth, None, out.presence, out.slot_steps, out.keep_logit, render, cand & ~kept)
 
     @torch.no_grad()
     def reanchor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
