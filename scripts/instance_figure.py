@@ -34,8 +34,13 @@ def main() -> None:
     if len(names) != len(args.models):
         raise SystemExit(f"--names: {len(names)} labels for {len(args.models)} models")
     ds = SceneDataset(args.data, split=args.split)
+    try:
+        idx = [int(i) for i in args.scenes.split(",")] if args.scenes else list(range(min(args.limit, len(ds))))
+    except ValueError:
+        raise SystemExit(f"--scenes: expected comma-separated scene indices, got {args.scenes!r}") from None
+    if not idx or any(not 0 <= i < len(ds) for i in idx):
+        raise SystemExit(f"--scenes: indices must be within the {len(ds)} scenes of {args.data} ({args.split}), got {idx}")
     models = [load_model(m)[0].eval() for m in args.models]
-    idx = [int(i) for i in args.scenes.split(",")] if args.scenes else list(range(min(args.limit, len(ds))))
     b = ds.batch(idx)
     with torch.no_grad():
         inst = [m(b.rgb, b.K, b.T_world_cam, b.ground_z).composite.instance.numpy() for m in models]

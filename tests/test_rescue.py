@@ -157,3 +157,24 @@ def test_rescue_needs_a_keep_refiner_and_training_ignores_it(cars_keep):
         with torch.no_grad():
             outs.append(m.train()(b.rgb[:2], b.K[:2], b.T_world_cam[:2], b.ground_z[:2]).latents.params.active)
     assert torch.equal(outs[0], outs[1])
+
+
+def test_instance_figure_refuses_bad_flags_in_one_line(tmp_path):
+    """``scripts/instance_figure.py``: as many labels as models, and scene indices inside the split; one line each, no
+    figure written."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from prismonet.assets import samples_for
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "instance_figure.py"
+    data = str(samples_for("cars_keep"))
+    out = tmp_path / "f.png"
+    for extra, says in ((["--names", "a,b"], "--names: 2 labels for 1 models"),
+                        (["--scenes", "0,x"], "--scenes: expected comma-separated scene indices"),
+                        (["--scenes", "0,99"], "--scenes: indices must be within the 16 scenes")):
+        r = subprocess.run([sys.executable, str(script), "cars_keep", "--data", data, "--split", "test", "--out", str(out), *extra],
+                           capture_output=True, text=True)
+        assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not out.exists()
