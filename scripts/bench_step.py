@@ -18,6 +18,8 @@ table gives medians over every timed step. Variants (cumulative, each adds one c
 - ``fused``: + Adam as one fused kernel (``fused=True``) instead of its per-tensor loop (session 58);
 - ``compiled``: + the object and background encoders under ``torch.compile`` (inductor, static shapes; session 62,
   not adopted: slower). Its first round also compiles, which round 0 (the warm-up) absorbs.
+- ``poolfirst``: ``fused`` (not ``compiled``) with each encoder block pooling before its ReLU (session 73, the code now;
+  exact: ``tests/test_encoder.py``). Every variant before it runs the blocks as conv, ReLU, pool.
 
 The process keeps freed memory for reuse as every ``prismonet`` command does (``prismonet.allocator``;
 ``PRISMONET_MALLOC=default`` turns it off).
@@ -63,9 +65,11 @@ class ShippedStep:
         self.state = {k: v.clone() for k, v in self.model.state_dict().items()}
         self.reset()
 
-    def reset(self, fused: bool = True, compiled: bool = False) -> None:
+    def reset(self, fused: bool = True, compiled: bool = False, pool_first: bool = True) -> None:
         if hasattr(self, "_eager"):  # the eager modules back first, so that the state's names match
             self.model.encoder, self.model.bg_encoder = self._eager
+        for enc in (self.model.encoder, self.model.bg_encoder):  # the same modules, in either order
+            enc.trunk = _trunk_order(enc.trunk, pool_first)
         self.model.load_state_dict(self.state)
         self.opt = torch.optim.Adam(self.params, lr=1e-6, fused=fused)
         if compiled:
@@ -92,7 +96,17 @@ class ShippedStep:
         return time.perf_counter() - t0
 
 
-VARIANTS = ("previous", "zbuffer", "inplace", "blur", "blurmm", "fused", "compiled")
+def _trunk_order(trunk: torch.nn.Sequential, pool_first: bool) -> torch.nn.Sequential:
+    """The trunk's own modules as blocks of (conv, pool, ReLU) with ``pool_first``, else (conv, ReLU, pool)."""
+    convs = [m for m in trunk if isinstance(m, torch.nn.Conv2d)]
+    pools = [m for m in trunk if isinstance(m, torch.nn.MaxPool2d)]
+    relus = [m for m in trunk if isinstance(m, torch.nn.ReLU)]
+    if isinstance(trunk[1], torch.nn.MaxPool2d) == pool_first:
+        return trunk  # already so: the same object (a compiled wrapper keeps its graph)
+    return torch.nn.Sequential(*[m for c, p, r in zip(convs, pools, relus) for m in ((c, p, r) if pool_first else (c, r, p))])
+
+
+VARIANTS = ("previous", "zbuffer", "inplace", "blur", "blurmm", "fused", "compiled", "poolfirst")
 _ORIGINAL: dict = {}
 
 
@@ -104,7 +118,7 @@ def configure(name: str) -> None:
     color_fit, composite, renderer, decoder, losses = (import_module(f"prismonet.{m}") for m in (
         "model.color_fit", "render.composite", "render.renderer", "shapes.decoder", "model.losses"))
 
-    rank = VARIANTS.index(name)
+    rank = VARIANTS.index(name) if name != "poolfirst" else VARIANTS.index("fused")
     _ORIGINAL.setdefault("zbuffer", composite.zbuffer)
     zb = _ORIGINAL["zbuffer"] if rank >= 1 else _argmin_zbuffer
     composite.zbuffer = renderer.zbuffer = color_fit.zbuffer = zb
@@ -171,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in range(args.rounds + 1):  # round 0 warms up
         for n in names:
             configure(n)
-            step.reset(fused=VARIANTS.index(n) >= 5, compiled=n == "compiled")
+            step.reset(fused=VARIANTS.index(n) >= 5, compiled=n == "compiled", pool_first=n == "poolfirst")
             for i in range(args.steps):
                 t = step(1000 * r + i)
                 if r > 0:

@@ -1,5 +1,10 @@
 """The object encoder g_o and the background encoder: conv blocks (3x3, stride 1, ReLU, 2x2
-max-pool), then fully connected layers. Run in channels-last memory format (faster on CPU)."""
+max-pool), then fully connected layers. Run in channels-last memory format (faster on CPU).
+
+Each block pools before its ReLU: ``relu(maxpool(x)) == maxpool(relu(x))`` exactly (ReLU is monotone), and the
+gradients are equal too (a window whose maximum is at most 0 passes no gradient either way), but the ReLU and its
+backward then touch a quarter of the elements. The modules' indices (and so the weights' names) are unchanged:
+conv, pool, ReLU. BENCHMARKS.md, "Session 73"."""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from torch import nn
 def conv_trunk(in_ch: int, channels: tuple[int, ...]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for c in channels:
-        layers += [nn.Conv2d(in_ch, c, 3, 1, 1), nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+        layers += [nn.Conv2d(in_ch, c, 3, 1, 1), nn.MaxPool2d(2), nn.ReLU(inplace=True)]  # pool first: module docstring
         in_ch = c
     return nn.Sequential(*layers)
 

@@ -89,6 +89,17 @@ class TrainConfig:
     target alike, as a greyscale photo is: a model trained on colour alone reads grey photos badly (EVALUATION.md,
     session 53). Each image is drawn on its own. With distillation, the background target is made grey too; a
     texture-latent target cannot be, so ``loss.distill_texture`` must then be 0."""
+    hue_rotate: float = 0.0
+    """> 0: each training image's colours are turned about the grey axis by an angle drawn from U(-hue_rotate,
+    hue_rotate) degrees, input and image target alike (``prismonet.data.hue``: exact for the Lambertian scenes; greys
+    stay). Takes away the colour shortcut of sets where each model has its own colour (the ShapeNet-style ones). With
+    distillation the background target is turned too; a texture-latent target cannot be, so ``loss.distill_texture``
+    must then be 0."""
+    recolor_objects: float = 0.0
+    """Share of training images whose objects get new colours, each region off the ground plane its own, found from
+    the depth alone (``prismonet.data.recolor``: exact for the Lambertian scenes), input and image target alike. Takes
+    away the colour shortcut that a hue turn leaves for grey objects. With distillation ``loss.distill_texture`` must
+    be 0, as with ``hue_rotate``."""
     depth_noise_eta: float = 0.0
     """Noisy-depth ablation: noise with sigma = eta d^2 on the target depth (the paper: 0.001)."""
     depth_clip: float = 12.0
@@ -132,6 +143,13 @@ class TrainConfig:
         if self.gray_share > 0 and self.loss.w_distill > 0 and self.loss.distill_texture > 0:
             raise ValueError("gray_share > 0 with distillation needs loss.distill_texture = 0: the texture-latent "
                              "targets are the colour scene's, and a grey image cannot match them")
+        if not 0 <= self.hue_rotate <= 180:
+            raise ValueError(f"hue_rotate must be in [0, 180] degrees, got {self.hue_rotate}")
+        if not 0 <= self.recolor_objects <= 1:
+            raise ValueError(f"recolor_objects must be in [0, 1], got {self.recolor_objects}")
+        if (self.hue_rotate > 0 or self.recolor_objects > 0) and self.loss.w_distill > 0 and self.loss.distill_texture > 0:
+            raise ValueError("hue_rotate or recolor_objects > 0 with distillation needs loss.distill_texture = 0: the "
+                             "texture-latent targets are the scene's own colours")
         if self.input_noise < 0 or self.depth_noise_eta < 0 or self.input_noise_max < 0 or self.input_blur < 0:
             raise ValueError("input_noise, input_noise_max, input_blur and depth_noise_eta must be non-negative")
         if self.lr_decay_from is not None and not 0 <= self.lr_decay_from < self.steps:
@@ -270,6 +288,41 @@ def gray_batch(batch, targets, cfg: TrainConfig, g: torch.Generator):
         t, mask = targets
         targets = ({**t, "bg_color": to_gray(t["bg_color"], which)}, mask)
     return batch, targets, which
+
+
+def hue_batch(batch, targets, cfg: TrainConfig, g: torch.Generator):
+    """With ``cfg.hue_rotate``: the batch with each image's colours turned about the grey axis by its own random
+    angle (input and target), and the distillation targets' background colours turned alike (without it nothing is
+    drawn and the batch is unchanged)."""
+    if cfg.hue_rotate <= 0:
+        return batch, targets
+    from dataclasses import replace
+
+    from prismonet.data.hue import random_angles, rotate_hue
+
+    angle = random_angles(batch.rgb.shape[0], cfg.hue_rotate, g)
+    batch = replace(batch, rgb=rotate_hue(batch.rgb, angle))
+    if targets is not None:
+        t, mask = targets
+        targets = ({**t, "bg_color": rotate_hue(t["bg_color"], angle)}, mask)
+    return batch, targets
+
+
+def recolor_batch(batch, cfg: TrainConfig, g: torch.Generator):
+    """With ``cfg.recolor_objects``: the batch with the objects of a random share of its images recoloured, region
+    by region, from the depth (``prismonet.data.recolor``); without it nothing is drawn and the batch is unchanged."""
+    if cfg.recolor_objects <= 0:
+        return batch
+    from dataclasses import replace
+
+    from prismonet.data.recolor import object_regions, recolor_regions
+    from prismonet.render.background import plane_depth
+
+    which = torch.rand(batch.rgb.shape[0], generator=g) < cfg.recolor_objects
+    H, W = batch.depth.shape[-2:]
+    ground = plane_depth(batch.K, batch.T_world_cam, H, W, batch.ground_z, cfg.model.far_depth)
+    labels = object_regions(batch.depth, ground, cfg.model.far_depth)
+    return replace(batch, rgb=recolor_regions(batch.rgb, labels, g, which=which))
 
 
 def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -426,6 +479,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             batch = ds.batch(idx.tolist()).to(device)
             looked_up = None if targets is None else targets.lookup(idx.to(device))
             batch, looked_up, grey = gray_batch(batch, looked_up, cfg, g)
+            batch, looked_up = hue_batch(batch, looked_up, cfg, g)
+            batch = recolor_batch(batch, cfg, g)
             image, target_depth = make_inputs(batch, cfg, g)
             if grey is not None:  # a greyscale sensor's noise is one channel's: the grey inputs stay grey
                 from prismonet.data.gray import to_gray
