@@ -849,3 +849,29 @@ def test_swap_weights_takes_the_sources_parts_and_keeps_the_rest(shipped, tmp_pa
     r = subprocess.run([sys.executable, str(scripts / "swap_weights.py"), str(tmp_path / "enc"), "shipped", str(tmp_path / "bad")],
                        capture_output=True, text=True)
     assert r.returncode != 0 and "swap_weights: error: the model has no weight" in r.stderr and not (tmp_path / "bad").exists()
+
+
+def test_refiner_command_targets_from_another_model(shipped, tmp_path, capsys):
+    """Targets made by one model, a refiner fitted on another's encoder (one fine-tuned on them): refused in one line
+    that names ``--targets-from``, and accepted with ``--targets-from`` naming the model that made them (checked
+    against that model's weights instead)."""
+    from prismonet.assets import shipped_samples
+    from prismonet.cli import main
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill_fit import weights_digest
+    from prismonet.model.io import load_model
+
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(shipped[0], ds, tmp_path / "t", 12, [0.0, 0.0, 0.0])
+    info = json.loads((tmp_path / "t" / "targets.json").read_text())
+    info["model_digest"] = weights_digest(load_model("clevr3_fc")[0])
+    (tmp_path / "t" / "targets.json").write_text(json.dumps(info))
+    args = ["refiner", "clevr3_60k", str(shipped_samples()), "--split", "test", "--targets", str(tmp_path / "t"),
+            "--holdout", "4", "--steps", "2", "--batch", "4", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "no")]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--targets-from" in lines[0] and not (tmp_path / "no").exists(), lines
+    assert main([*args, "--out", str(tmp_path / "wrong"), "--targets-from", "clevr3_60k"]) == 2  # not the maker either
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "run"), "--targets-from", "clevr3_fc"]) == 0
+    assert (tmp_path / "run" / "model.safetensors").is_file()

@@ -67,8 +67,11 @@ def cmd_refiner(args) -> int:
 
     info_path = Path(args.targets) / "targets.json"  # without it fit_refiner says what is missing
     meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
-    if meta and meta.get("model_digest") != weights_digest(base) and not _made_by_refined(meta, weights_digest(base)):
-        raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {args.checkpoint}'s")
+    maker = base if args.targets_from is None else load_model(args.targets_from)[0]
+    maker_name = args.checkpoint if args.targets_from is None else args.targets_from
+    if meta and meta.get("model_digest") != weights_digest(maker) and not _made_by_refined(meta, weights_digest(maker)):
+        raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {maker_name}'s"
+                         + ("" if args.targets_from else " (--targets-from MODEL names the model that made them)"))
     s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
     print(json.dumps(s))
     print(f"run folder: {args.out}  (model.safetensors + model.json with the refiner, checkpoint.safetensors, log.jsonl)")
@@ -166,6 +169,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--fill-hidden", action="store_true",
                    help="with --true-poses: the objects no shown slot matches go to the hidden slots, which are then kept "
                         "(measured worse on tableware: off by default)")
+    r.add_argument("--targets-from", default=None, metavar="MODEL",
+                   help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
+                        "them with distillation, in the same slot order); checked against MODEL's weights instead")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])
     _add_color_step_parser(sub)
