@@ -478,9 +478,10 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
             batch = ds.batch(idx.tolist()).to(device)
             looked_up = None if targets is None else targets.lookup(idx.to(device))
-            batch, looked_up, grey = gray_batch(batch, looked_up, cfg, g)
+            # colours first, so that an image made grey afterwards stays grey (no draw when they are off)
             batch, looked_up = hue_batch(batch, looked_up, cfg, g)
             batch = recolor_batch(batch, cfg, g)
+            batch, looked_up, grey = gray_batch(batch, looked_up, cfg, g)
             image, target_depth = make_inputs(batch, cfg, g)
             if grey is not None:  # a greyscale sensor's noise is one channel's: the grey inputs stay grey
                 from prismonet.data.gray import to_gray
