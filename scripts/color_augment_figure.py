@@ -28,10 +28,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from prismonet.data.dataset import DatasetError, SceneDataset
     from prismonet.data.hue import random_angles, rotate_hue
-    from prismonet.data.recolor import object_regions, recolor_regions
+    from prismonet.data.recolor import batch_regions, recolor_regions
     from prismonet.files import write_image
     from prismonet.model.config import ModelConfig
-    from prismonet.render.background import plane_depth
     from prismonet.viz.decomposition import labelled_panel
 
     try:
@@ -42,10 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     b = ds.batch(list(range(min(args.scenes, len(ds)))))
     g = torch.Generator().manual_seed(args.seed)
     turned = rotate_hue(b.rgb, random_angles(len(b), args.hue, g))
-    H, W = b.depth.shape[-2:]
-    far = ModelConfig().far_depth  # the generator's and the models' far clip
-    labels = object_regions(b.depth, plane_depth(b.K, b.T_world_cam, H, W, b.ground_z, far), far)
-    recoloured = recolor_regions(b.rgb, labels, g)
+    recoloured = recolor_regions(b.rgb, batch_regions(b, ModelConfig().far_depth), g)  # the models' far clip
     to8 = lambda t: (t.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
     rows = [np.concatenate([labelled_panel(to8(img[i]), name, (160, 160)) for name, img in
                             (("as rendered", b.rgb), (f"hue turned (<= {args.hue:g} deg)", turned), ("objects recoloured", recoloured))], 1)

@@ -35,6 +35,14 @@ def object_regions(depth: torch.Tensor, ground_depth: torch.Tensor, far_depth: f
     return np.stack([cv2.connectedComponents(m, connectivity=8)[1] for m in off]).astype(np.int64)
 
 
+def batch_regions(batch, far_depth: float) -> np.ndarray:
+    """``object_regions`` of a batch of scenes (its depth against its own ground plane's depth)."""
+    from prismonet.render.background import plane_depth
+
+    H, W = batch.depth.shape[-2:]
+    return object_regions(batch.depth, plane_depth(batch.K, batch.T_world_cam, H, W, batch.ground_z, far_depth), far_depth)
+
+
 def recolor_regions(rgb: torch.Tensor, labels: np.ndarray, g: torch.Generator, brightness: tuple[float, float] = (0.7, 1.3),
                     which: torch.Tensor | None = None) -> torch.Tensor:
     """``rgb (B, 3, H, W)`` with every region of ``labels (B, H, W)`` (0: left alone) multiplied per channel by gains

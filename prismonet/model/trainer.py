@@ -315,14 +315,10 @@ def recolor_batch(batch, cfg: TrainConfig, g: torch.Generator):
         return batch
     from dataclasses import replace
 
-    from prismonet.data.recolor import object_regions, recolor_regions
-    from prismonet.render.background import plane_depth
+    from prismonet.data.recolor import batch_regions, recolor_regions
 
     which = torch.rand(batch.rgb.shape[0], generator=g) < cfg.recolor_objects
-    H, W = batch.depth.shape[-2:]
-    ground = plane_depth(batch.K, batch.T_world_cam, H, W, batch.ground_z, cfg.model.far_depth)
-    labels = object_regions(batch.depth, ground, cfg.model.far_depth)
-    return replace(batch, rgb=recolor_regions(batch.rgb, labels, g, which=which))
+    return replace(batch, rgb=recolor_regions(batch.rgb, batch_regions(batch, cfg.model.far_depth), g, which=which))
 
 
 def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
