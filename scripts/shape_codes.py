@@ -1,6 +1,6 @@
 """Which shape does the encoder predict? Nearest prior code (L2) of each matched slot's z_sh, by true category.
 
-    python3 scripts/shape_codes.py RUN DATA [--split test] [--limit 400] [--search R]
+    python3 scripts/shape_codes.py RUN DATA [--split test] [--limit 400] [--search R] [--set shape_trials=True]
 
 For every predicted object matched to a true one at IoU 0.5, the category of the prior's training
 code nearest to its shape latent, against the true category (a confusion table), and the median
@@ -19,6 +19,16 @@ import torch
 CATS = ("sphere", "cylinder", "cube")
 
 
+def eval_value(text: str):
+    """A ``--set`` value: a Python literal (``True``, ``3``, ``(1.0, 1.2)``), else the text itself."""
+    import ast
+
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run")
@@ -26,6 +36,8 @@ def main(argv=None) -> int:
     ap.add_argument("--split", default="test")
     ap.add_argument("--limit", type=int, default=400)
     ap.add_argument("--search", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a SearchConfig field for the search, e.g. shape_trials=True (repeatable)")
     args = ap.parse_args(argv)
     if args.limit <= 0 or args.search < 0:
         print("shape_codes: error: --limit must be positive and --search non-negative", file=sys.stderr)
@@ -36,6 +48,7 @@ def main(argv=None) -> int:
     from prismonet.model.search import SearchConfig, search_latents
 
     model, _ = load_model(args.run)
+    search_cfg = SearchConfig(rounds=args.search, **{k: eval_value(v) for k, v in (a.split("=", 1) for a in args.set)})
     codes = model.prior.latents.detach()  # (27, D)
     code_cat = torch.tensor(model.prior.category_ids)
     ds = SceneDataset(args.data, args.split)
@@ -47,7 +60,7 @@ def main(argv=None) -> int:
             b = ds.batch(list(range(s, min(s + 16, n))))
             out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
             if args.search:
-                out = search_latents(model, out, b, SearchConfig(rounds=args.search))
+                out = search_latents(model, out, b, search_cfg)
             z = out.latents.params.z_sh  # (B, N, D)
             d = torch.cdist(z, codes[None].expand(len(z), -1, -1))  # (B, N, 27)
             near = d.argmin(-1)
@@ -57,7 +70,7 @@ def main(argv=None) -> int:
                     pred = int(code_cat[int(near[j, pk - 1])])
                     conf[true, pred] += 1
                     dist[true].append(float(d[j, pk - 1].min()))
-    print(f"{n} scenes of {args.data} [{args.split}], search rounds {args.search}: nearest prior code of matched slots")
+    print(f"{n} scenes of {args.data} [{args.split}], search rounds {args.search} {args.set or ''}: nearest prior code of matched slots")
     print("| true \\ nearest code | " + " | ".join(CATS) + " | share right | median distance to nearest code |")
     print("|---|---|---|---|---|---|")
     for t in range(3):

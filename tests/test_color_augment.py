@@ -193,3 +193,65 @@ def test_color_augment_figure_script(tmp_path, capsys):
     assert img.shape[1] == 3 * 160 and img.shape[0] > 2 * 160  # three labelled panels a row, two rows
     assert run([str(tmp_path / "none"), "--out", str(tmp_path / "g.png")]) == 2
     assert "no such dataset folder" in capsys.readouterr().err and not (tmp_path / "g.png").exists()
+
+
+def test_recolored_scenes_are_drawn_once_per_scene():
+    """``RecoloredScenes``: a scene's colours are ``recolor_regions`` with the generator of ``(seed, index)``, the same
+    whichever batch asks for it and in whatever order; depth and ground pixels are the scene's own; another seed draws
+    other colours."""
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.data.recolor import RecoloredScenes, batch_regions, recolor_regions
+
+    ds = SceneDataset(samples_for("cars_keep"), split="test")
+    view = RecoloredScenes(ds, 12.0, seed=3)
+    a = view.batch([2, 0, 1])
+    b = view.batch([1, 2])
+    assert torch.equal(a.rgb[0], b.rgb[1]) and torch.equal(a.rgb[2], b.rgb[0])
+    fresh = RecoloredScenes(ds, 12.0, seed=3).batch([1])
+    assert torch.equal(fresh.rgb[0], b.rgb[0])  # not a matter of what was asked for first
+    plain = ds.batch([2, 0, 1])
+    assert torch.equal(a.depth, plain.depth) and len(view) == len(ds)
+    labels = batch_regions(plain, 12.0)
+    want = recolor_regions(plain.rgb[1:2], labels[1:2], torch.Generator().manual_seed(3 * 1_000_003 + 0))
+    assert torch.equal(a.rgb[1], want[0])
+    ground = torch.from_numpy(labels == 0)[:, None].expand_as(plain.rgb)
+    assert torch.equal(a.rgb[ground], plain.rgb[ground]) and not torch.equal(a.rgb, plain.rgb)
+    other = RecoloredScenes(ds, 12.0, seed=4).batch([2, 0, 1])
+    assert not torch.equal(other.rgb, a.rgb)
+
+
+def test_refiner_fit_with_recoloured_scenes(shipped, tmp_path, capsys):
+    """``RefinerFitConfig.recolor``: refused with a texture or colour term (one line from the CLI), and with a cache made
+    elsewhere; a fit with it runs, learns, records it and resumes."""
+    import json
+
+    from prismonet.assets import shipped_samples
+    from prismonet.cli import main
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import DistillError
+    from prismonet.model.refiner_fit import RefinerFitConfig, encoder_cache, fit_refiner, with_refiner
+    from test_refiner import _shifted_targets
+
+    for bad in (dict(texture=0.1), dict(texture=0.0, color=0.5)):
+        with pytest.raises(ValueError, match="recolor needs texture = 0 and color = 0"):
+            RefinerFitConfig(recolor=True, **bad)
+    assert main(["refiner", "shipped", str(shipped_samples()), "--targets", str(tmp_path / "t"), "--out",
+                 str(tmp_path / "x"), "--recolor"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "recolor needs texture = 0" in err[-1] and not (tmp_path / "x" / "model.json").exists()
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30, texture=0.0, recolor=True)
+    with pytest.raises(DistillError, match="made from the recoloured scenes"):
+        fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "c", cfg, progress=False,
+                    cache=encoder_cache(with_refiner(model), ds, 12, progress=False))
+    s = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    assert s["held_out_end"] < s["held_out_start"]
+    rec = json.loads((tmp_path / "run" / "model.json").read_text())["refiner_fit"]["fit"]
+    assert rec["recolor"] is True
+    more = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run",
+                       RefinerFitConfig(**{**cfg.__dict__, "steps": 40}), progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [0, 30, 40] and more["steps"] == 40

@@ -115,7 +115,9 @@ def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid
 
 @pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0),
                                  dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1), dict(grid=-1), dict(grid=1),
-                                 dict(grid=16, shape_trials=True), dict(grid=16, shape_nearest=3), dict(shape_nearest=-1)])
+                                 dict(grid=16, shape_trials=True), dict(grid=16, shape_nearest=3), dict(shape_nearest=-1),
+                                 dict(shape_yaws=(30.0,)), dict(shape_scales=(0.8,)), dict(shape_polish=1),
+                                 dict(shape_trials=True, shape_scales=(0.0,)), dict(shape_trials=True, shape_polish=-1)])
 def test_search_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="search"):
         SearchConfig(**bad)
@@ -195,6 +197,75 @@ def test_shape_trials_recover_the_right_category(shipped):
     assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)
 
 
+def _cube_target(model, out, b, factor: float, turn: float, shift: float = 0.0):
+    """The scene's slots drawn with the cube code nearest to the first cylinder code, at ``factor`` x their
+    scale (their height above the ground scaled alike), turned by ``turn`` degrees and moved ``shift`` along
+    world x, as ``b``'s RGB-D; and the start: the slots as they are, with that cylinder code. Only the first
+    slot is shown: with several, a slot's best code depends on the others' (which may cover it), and the
+    trials go one slot at a time."""
+    p, bg = out.latents.params, out.latents.bg_color
+    active = torch.zeros_like(p.scale, dtype=torch.bool)
+    active[:, 0] = True
+    p = _with(p, active=active)
+    codes, cats = model.prior.latents, torch.as_tensor(model.prior.category_ids)
+    cylinder = codes[cats == 1][0]
+    cube = codes[cats == 2][torch.cdist(cylinder[None], codes[cats == 2]).argmin()]
+    position = p.position.clone()
+    g = b.ground_z.view(-1, 1)
+    position[..., 2] = g + (position[..., 2] - g) * factor
+    position[..., 0] += shift
+    c, s = math.cos(math.radians(turn)), math.sin(math.radians(turn))
+    x, y = p.cos_sin.unbind(-1)
+    truth = _with(p, z_sh=cube.expand_as(p.z_sh).clone(), scale=p.scale * factor, position=position,
+                  cos_sin=torch.stack([c * x - s * y, s * x + c * y], -1))
+    target = _rendered_target(model, b, truth, bg)
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        start = render_latents(model, _with(p, z_sh=cylinder.expand_as(p.z_sh).clone()), bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    return cube, truth, target, start
+
+
+def test_shape_trials_at_other_scales_and_turns(shipped):
+    """Target: cube codes at 0.8 x the slots' scale (resting on the ground as before) and turned by 30 degrees;
+    start: cylinder codes at the slots' own poses. Shape trials with ``shape_scales=(0.8,)`` and
+    ``shape_yaws=(30,)`` reach the target exactly: code, scale, ground-kept centre and yaw; without those
+    variants they cannot."""
+    model, _, out = shipped
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    cube, truth, target, start = _cube_target(model, out, b, 0.8, 30.0)
+    only_shapes = dict(scales=(), shifts=(), yaws=(), rounds=1, shape_trials=True)
+    found = search_latents(model, start, b, SearchConfig(shape_scales=(0.8,), shape_yaws=(30.0,), **only_shapes))
+    visible = torch.stack([(target.composite.instance == k + 1).flatten(1).any(1) for k in range(3)], 1)
+    assert visible[:, 0].all() and not visible[:, 1:].any()
+    q = found.latents.params
+    plain = search_latents(model, start, b, SearchConfig(**only_shapes))
+    assert not torch.allclose(plain.composite.image, target.composite.image, atol=1e-3)
+    assert torch.allclose(q.z_sh[visible], cube.expand(int(visible.sum()), -1))
+    for name in ("scale", "position", "cos_sin"):
+        assert torch.allclose(getattr(q, name)[visible], getattr(truth, name)[visible], atol=1e-5), name
+    assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)
+
+
+def test_shape_polish_moves_a_new_shape_before_judging_it(shipped):
+    """Target: the cubes of the test above also moved 0.2 along x. A shape trial judged at once keeps the
+    cylinder wherever the unmoved cube fits worse; with ``shape_polish=1`` and the shift trial of 0.2 the cube
+    is moved first and every visible slot ends on the target. The score never rises above the start's."""
+    model, _, out = shipped
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    cube, truth, target, start = _cube_target(model, out, b, 0.8, 30.0, shift=0.2)
+    cfg = dict(scales=(), shifts=(0.2,), yaws=(), rounds=1, shape_trials=True, shape_scales=(0.8,), shape_yaws=(30.0,))
+    polished = search_latents(model, start, b, SearchConfig(shape_polish=1, **cfg))
+    visible = torch.stack([(target.composite.instance == k + 1).flatten(1).any(1) for k in range(3)], 1)
+    q = polished.latents.params
+    assert torch.allclose(q.z_sh[visible], cube.expand(int(visible.sum()), -1))
+    assert torch.allclose(q.position[visible], truth.position[visible], atol=1e-5)
+    assert torch.allclose(polished.composite.image, target.composite.image, atol=1e-4)
+    score = lambda o: fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth)
+    at_once = search_latents(model, start, b, SearchConfig(**cfg))
+    assert not torch.allclose(at_once.composite.image, target.composite.image, atol=1e-3)
+    assert (score(polished) <= score(at_once) + 1e-7).all() and (score(at_once) <= score(start) + 1e-7).all()
+
+
 def test_shape_nearest_tries_the_prior_codes_nearest_first(shipped):
     """Target: every slot drawn with one training code of the prior; start: the same poses with another
     code. Trying all the prior's codes fits the scene exactly (the target's code is among them);
@@ -227,3 +298,22 @@ def test_ab_script_refuses_an_unknown_revision_in_one_line():
     assert r.returncode == 1
     last = r.stderr.strip().splitlines()[-1]
     assert "search_ab: error: no prismonet/model/search.py at 'no-such-revision'" in last and "Traceback" not in r.stderr
+
+
+def test_pose_shape_truth_script_runs_and_refuses_a_bad_category(capsys):
+    """``scripts/pose_shape_truth.py`` on four shipped test scenes prints both tables; a category the prior lacks is
+    refused in one line."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "pose_shape_truth.py"
+    spec = importlib.util.spec_from_file_location("pose_shape_truth", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    data = str(shipped_samples())
+    assert mod.main(["shipped", data, "--split", "test", "--limit", "4", "--batch", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "| encoder's pose | + true yaw |" in out and "true poses, every object's code" in out
+    assert mod.main(["shipped", data, "--split", "test", "--limit", "4", "--category", "7"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no category 7" in err[0]

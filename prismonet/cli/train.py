@@ -55,7 +55,7 @@ def cmd_refiner(args) -> int:
 
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
                            texture=args.texture, color=args.color, true_poses=args.true_poses,
-                           fill_hidden=args.fill_hidden)  # validate first
+                           fill_hidden=args.fill_hidden, recolor=args.recolor)  # validate first
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
@@ -169,6 +169,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--fill-hidden", action="store_true",
                    help="with --true-poses: the objects no shown slot matches go to the hidden slots, which are then kept "
                         "(measured worse on tableware: off by default)")
+    r.add_argument("--recolor", action="store_true",
+                   help="the refiner sees every scene with new object colours, drawn once per scene from --seed, found "
+                        "from depth alone (so it cannot tell a seen model by its colour); needs --texture 0")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

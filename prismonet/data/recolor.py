@@ -67,3 +67,30 @@ def recolor_regions(rgb: torch.Tensor, labels: np.ndarray, g: torch.Generator, b
             gains = (c / mean.clamp_min(1e-4)).clamp(max=MAX_GAIN).to(rgb.dtype)
             out[b][:, m] = (rgb[b][:, m] * gains[:, None]).clamp(0.0, 1.0)
     return out
+
+
+class RecoloredScenes:
+    """A dataset (``SceneDataset``-like: ``len`` and ``batch(indices)``) whose images have new object colours, drawn
+    once per scene from ``(seed, index)`` with ``recolor_regions`` and kept: a scene reads the same wherever and
+    however often it is asked for. For fits that cache what a model makes of each scene (``refiner_fit``): the cache
+    and the fit's steps must see the same colours. Depth, poses and everything else are the scene's own."""
+
+    def __init__(self, ds, far_depth: float, seed: int = 0, brightness: tuple[float, float] = (0.7, 1.3)) -> None:
+        self.ds, self.far_depth, self.seed, self.brightness = ds, far_depth, seed, brightness
+        self._rgb: dict[int, torch.Tensor] = {}
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def batch(self, indices):
+        from dataclasses import replace
+
+        indices = [int(i) for i in indices]
+        b = self.ds.batch(indices)
+        new = [j for j, i in enumerate(indices) if i not in self._rgb]
+        if new:
+            labels = batch_regions(b, self.far_depth)
+            for j in new:
+                g = torch.Generator().manual_seed(self.seed * 1_000_003 + indices[j])
+                self._rgb[indices[j]] = recolor_regions(b.rgb[j : j + 1], labels[j : j + 1], g, self.brightness)[0]
+        return replace(b, rgb=torch.stack([self._rgb[i] for i in indices]))

@@ -59,6 +59,11 @@ class RefinerFitConfig:
     fill_hidden: bool = False
     """With ``true_poses``: the true objects no shown slot matches go to the hidden slots, which become targets
     (``pose_targets.with_true_poses``)."""
+    recolor: bool = False
+    """The refiner sees every training scene with new object colours (``prismonet.data.recolor.RecoloredScenes``,
+    drawn once per scene from ``seed``), the encoder's cached decoding included, so that it cannot tell a seen model by
+    its colour (EVALUATION.md, sessions 73-74). The targets' poses and shapes do not depend on colour; their texture
+    latents do, so ``texture`` and ``color`` must be 0."""
 
     def __post_init__(self) -> None:
         if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0:
@@ -66,6 +71,9 @@ class RefinerFitConfig:
                              f"{self.steps}, {self.batch_size}, {self.lr}, {self.checkpoint_every}, {self.holdout}")
         if self.fill_hidden and not self.true_poses:
             raise ValueError("refiner fit: fill_hidden needs true_poses (it gives hidden slots the true poses left over)")
+        if self.recolor and (self.texture > 0 or self.color > 0):
+            raise ValueError("refiner fit: recolor needs texture = 0 and color = 0 (the targets' texture latents are "
+                             f"the scenes' own colours), got {self.texture}, {self.color}")
         if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
             raise ValueError(f"refiner fit: weight_decay, texture and color must be >= 0, got {self.weight_decay}, {self.texture}, {self.color}")
 
@@ -196,7 +204,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
     # the options added later are recorded only when on, so runs made before them resume
-    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k in ("color", "true_poses", "fill_hidden") and not v)}
+    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor") and not v)}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
@@ -205,6 +213,13 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
 
         targets.t, record["true_poses"] = true_poses_for(targets.t, ds, count, cfg.fill_hidden)
         targets.count = count
+    if cfg.recolor:
+        from prismonet.data.recolor import RecoloredScenes
+
+        if cache is not None:
+            raise DistillError("recolor: the encoder's cache must be made from the recoloured scenes, so it is made here")
+
+        ds = RecoloredScenes(ds, model.cfg.far_depth, seed=cfg.seed)
     ckpt = out / "checkpoint.safetensors"
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)

@@ -46,6 +46,20 @@ class SearchConfig:
     """Also try, once per slot in the first pass, the prior's training code nearest to the slot's
     shape latent within each shape category (sphere, cylinder, cube for Clevr): the encoder's
     latents drift towards one category (cubes come out nearest a cylinder code, EVALUATION.md)."""
+    shape_yaws: tuple[float, ...] = ()
+    """With ``shape_trials``, also try each category's code turned by these angles (degrees) about the
+    vertical axis: the encoder's yaw for a slot it draws round is arbitrary, and a cube code at an
+    arbitrary yaw fits worse than the round shape it would replace (EVALUATION.md, sharp shapes)."""
+    shape_scales: tuple[float, ...] = ()
+    """With ``shape_trials``, also try each category's code at the slot's scale times these multipliers (with
+    every turn of ``shape_yaws``): the encoder's scale is the one its own latent needed, and a cube's code
+    normalised to the unit sphere needs a smaller one than the rounded shape drawn in its place. The slot's
+    centre moves with its scale so that its height above the ground scales too (an object resting on the
+    ground stays on it)."""
+    shape_polish: int = 0
+    """With ``shape_trials``, passes of pose trials (scales, shifts, yaws, as pass 0 of the search) on a slot
+    after it takes another category's code and before that code is judged against the slot's own: the
+    encoder's pose was fitted to its own shape, and a cube code needs its own (0: judged at once)."""
     shape_nearest: int = 0
     """Also try, once per slot in the first pass, the prior's ``N`` training codes nearest to the slot's
     shape latent, whatever their category (0: none). For priors of many similar shapes (chairs), where
@@ -70,6 +84,12 @@ class SearchConfig:
             raise ValueError(f"search: coarse_rounds must lie in [0, rounds], got {self.coarse_rounds} of {self.rounds}")
         if self.grid < 0 or self.grid == 1 or (self.grid and (self.shape_trials or self.shape_nearest)):
             raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, and not with shape trials, got {self.grid}")
+        if (self.shape_yaws or self.shape_scales or self.shape_polish) and not self.shape_trials:
+            raise ValueError("search: shape_yaws, shape_scales and shape_polish act on the shape trials, so they need shape_trials=True")
+        if self.shape_polish < 0:
+            raise ValueError(f"search: shape_polish must be >= 0, got {self.shape_polish}")
+        if any(m <= 0 for m in self.shape_scales):
+            raise ValueError(f"search: shape_scales must be positive, got {self.shape_scales}")
         if self.shape_nearest < 0:
             raise ValueError(f"search: shape_nearest must be >= 0, got {self.shape_nearest}")
         if self.rounds < 0 or any(s <= 0 for s in self.scales) or self.w_image < 0 or self.w_depth < 0 or not 0 < self.decay <= 1:
@@ -94,9 +114,16 @@ def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch
                 yield scale, p, cos_sin
     for a in cfg.yaws:
         if a != 0:
-            c, s = math.cos(math.radians(a * step)), math.sin(math.radians(a * step))
-            x, y = cos_sin.unbind(-1)
-            yield scale, position, torch.stack([c * x - s * y, s * x + c * y], -1)
+            yield scale, position, _turn(cos_sin, a * step)
+
+
+def _turn(cos_sin: torch.Tensor, degrees: float) -> torch.Tensor:
+    """``cos_sin`` (..., 2) of a yaw turned by ``degrees`` about the vertical axis."""
+    if degrees == 0:
+        return cos_sin
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    x, y = cos_sin.unbind(-1)
+    return torch.stack([c * x - s * y, s * x + c * y], -1)
 
 
 class _Level:
@@ -157,6 +184,33 @@ class _Level:
         self.color[:, k] = torch.where(w[:, None], c_try[:, k], self.color[:, k])
         state.keep(win, k, z_try, s_try, p_try, cs_try)
 
+    def try_shape(self, state: "_State", k: int, z: torch.Tensor, scale: torch.Tensor, position: torch.Tensor,
+                  cos_sin: torch.Tensor) -> None:
+        """Shape trial: slot ``k`` with code ``z (B, D)`` at the ``shape_scales`` x ``shape_yaws`` variants of the
+        pose ``scale (B,), position (B, 3), cos_sin (B, 2)``, kept per scene where the score falls. With
+        ``shape_polish`` the best variant is taken whatever its score, its pose searched for that many passes, and
+        only then judged against the slot as it was."""
+        cfg = self.cfg
+        if cfg.shape_polish:
+            saved = (self.depth.clone(), self.mask.clone(), self.color.clone(), self.best.clone(), state.snapshot())
+            self.best = torch.full_like(self.best, float("inf"))  # the first variant is taken, then the best of them
+        for m in (1.0, *(m for m in cfg.shape_scales if m != 1)):
+            p = position.clone()
+            p[:, 2] = state.ground_z + (p[:, 2] - state.ground_z) * m
+            for a in (0.0, *(y for y in cfg.shape_yaws if y % 360 != 0)):
+                self.attempt(state, k, z, scale * m, p, _turn(cos_sin, a))
+        if not cfg.shape_polish:
+            return
+        for r in range(cfg.shape_polish):
+            for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, state.scale[:, k], state.position[:, k], state.cos_sin[:, k]):
+                self.attempt(state, k, state.z_sh[:, k], s_try, p_try, cs_try)
+        depth, mask, color, best, snap = saved
+        worse = self.best >= best
+        state.restore(worse, snap)
+        w = worse.view(-1, 1, 1, 1)
+        self.depth, self.mask = torch.where(w, depth, self.depth), torch.where(w, mask, self.mask)
+        self.color, self.best = torch.where(w[..., None], color, self.color), torch.where(worse, best, self.best)
+
     def run_round(self, state: "_State", r: int) -> None:
         """One pass over all slots: shape trials (first pass, if asked), scales, shifts, yaws."""
         cfg, p = self.cfg, state.start
@@ -167,10 +221,11 @@ class _Level:
             if p.active is not None and not p.active[:, k].any():
                 continue  # never decoded (a stopped encoder): nothing to search
             if cfg.shape_trials and r == 0:
+                # every category's variants start from the slot's pose before any of them (no compounding)
+                z0, pose = state.z_sh[:, k].clone(), (state.scale[:, k].clone(), state.position[:, k].clone(), state.cos_sin[:, k].clone())
                 for c in torch.unique(cats):
                     sel = codes[cats == c]  # (n_c, D)
-                    nearest = sel[torch.cdist(state.z_sh[:, k], sel, compute_mode=exact).argmin(1)]  # (B, D)
-                    self.attempt(state, k, nearest, state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
+                    self.try_shape(state, k, sel[torch.cdist(z0, sel, compute_mode=exact).argmin(1)], *pose)
             if cfg.shape_nearest and r == 0:
                 n = min(cfg.shape_nearest, codes.shape[0])
                 dist = torch.cdist(state.z_sh[:, k], codes, compute_mode=exact)
@@ -184,8 +239,10 @@ class _Level:
 class _State:
     """The searched latents (copies of the encoder's, changed in place as trials win)."""
 
-    def __init__(self, start: SceneParams) -> None:
-        self.start = start
+    FIELDS = ("scale", "position", "cos_sin", "z_sh")
+
+    def __init__(self, start: SceneParams, ground_z: torch.Tensor) -> None:
+        self.start, self.ground_z = start, ground_z.to(start.position)  # ground_z (B,)
         self.scale, self.position = start.scale.clone(), start.position.clone()
         self.cos_sin, self.z_sh = start.cos_sin.clone(), start.z_sh.clone()
 
@@ -205,6 +262,14 @@ class _State:
         self.position[:, k] = torch.where(win[:, None], position, self.position[:, k])
         self.cos_sin[:, k] = torch.where(win[:, None], cos_sin, self.cos_sin[:, k])
         self.z_sh[:, k] = torch.where(win[:, None], z_sh, self.z_sh[:, k])
+
+    def snapshot(self) -> tuple[torch.Tensor, ...]:
+        return tuple(getattr(self, n).clone() for n in _State.FIELDS)
+
+    def restore(self, scenes: torch.Tensor, snap: tuple[torch.Tensor, ...]) -> None:
+        """Back to ``snap`` (``snapshot()``) in the scenes ``scenes`` (``(B,)`` bool)."""
+        for name, t0 in zip(_State.FIELDS, snap):
+            getattr(self, name)[scenes] = t0[scenes]
 
     def revert(self, scenes: torch.Tensor) -> None:
         """Back to the start latents in the scenes ``scenes`` (``(B,)`` bool)."""
@@ -228,7 +293,7 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     target_depth = batch.depth if use_depth and cfg.w_depth > 0 else None
     far = model.cfg.far_depth if cfg.far_clip else None
     bg = out.latents.bg_color
-    state = _State(p)
+    state = _State(p, batch.ground_z)
     B, Kslots = p.z_sh.shape[:2]
     shapes = SdfGrid.tabulate(model.sdf_fn, p.z_sh.reshape(B * Kslots, -1), model.prior.bounds, cfg.grid) if cfg.grid else None
     start = (out.obj_depth, out.obj_mask, out.obj_color)  # the MLP's renders of the encoder's latents

@@ -1,0 +1,117 @@
+"""Does the fit score pay for a category's true shape, and which part of the pose must be right for it to?
+
+    python3 scripts/pose_shape_truth.py shipped data/clevr3 --split val --limit 96 --category 2
+
+For every true object of the category (2: the Clevr cubes) that a slot takes (paired as L_pose pairs them: Hungarian on
+position; no mask is read), the slot is given the object's own prior code and, one part at a time, the object's true
+yaw, scale and position; each variant is scored against the input RGB-D with the search's ``fit_score`` (colour MSE +
+0.1 x depth L1) and compared with the encoder's own slot. Then whole scenes: the encoder, the search, and the true poses
+with the encoder's codes, with the true codes for the category, and with every object's true code.
+
+It answers where a shape is lost (EVALUATION.md, session 74): if the true code at the true pose fits better than the
+encoder's latent, the objective pays for it and the encoder sits in a local minimum; the part-by-part table says which
+part of the pose it is held by. Uses the data's true poses and shape ids: a diagnostic, not an inference mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+PARTS = ("encoder's pose", "+ true yaw", "+ true scale", "+ true position", "+ true yaw and scale", "all true")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run")
+    ap.add_argument("data")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--limit", type=int, default=96)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--category", type=int, default=2, help="the prior's category id (Clevr: 0 sphere, 1 cylinder, 2 cube)")
+    ap.add_argument("--library", default="clevr", help="the shape library whose yaw periods the true poses take")
+    args = ap.parse_args(argv)
+    if args.limit <= 0 or args.batch <= 0:
+        print("pose_shape_truth: error: --limit and --batch must be positive", file=sys.stderr)
+        return 2
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.fit_score import fit_score
+    from prismonet.model.io import load_model
+    from prismonet.model.pose_targets import match_slots, posed_at_truth
+    from prismonet.model.refine import render_latents
+    from prismonet.model.search import SearchConfig, search_latents
+    from prismonet.shapes.symmetry import library_yaw_periods
+
+    model, _ = load_model(args.run)
+    ds = SceneDataset(args.data, args.split)
+    codes, cats = model.prior.latents.detach(), torch.tensor(model.prior.category_ids)
+    if args.category not in set(cats.tolist()):
+        print(f"pose_shape_truth: error: the prior has no category {args.category} (it has {sorted(set(cats.tolist()))})", file=sys.stderr)
+        return 2
+    periods = library_yaw_periods(args.library)
+    n = min(args.limit, len(ds))
+    rows, ratio = [], []
+    scenes = {k: [] for k in ("encoder", "search (R = 3)", "true poses, encoder codes", "true poses, true codes for the category",
+                              "true poses, every object's code")}
+    with torch.no_grad():
+        for s in range(0, n, args.batch):
+            b = ds.batch(list(range(s, min(s + args.batch, n))))
+            out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+            H, W = b.rgb.shape[-2:]
+
+            def score(p, b=b, out=out):
+                o = render_latents(model, p, out.latents.bg_color, b.K, b.T_world_cam, b.ground_z, H, W)
+                return fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth)
+
+            pe = out.latents.params
+            pt, _ = posed_at_truth(pe, b, periods)
+            base = fit_score(out.composite.image, out.composite.depth, b.rgb, b.depth)
+            z_cat, z_all = pt.z_sh.clone(), pt.z_sh.clone()
+            Kslots = pe.scale.shape[1]
+            for i in range(len(b)):
+                slots, objs = match_slots(pe.position[i], b.obj_position[i], torch.arange(Kslots), torch.arange(int(b.obj_count[i])))
+                for k, g in zip(slots.tolist(), objs.tolist()):
+                    sid = int(b.obj_shape[i, g])
+                    z_all[i, k] = codes[sid]
+                    if int(cats[sid]) != args.category:
+                        continue
+                    z_cat[i, k] = codes[sid]
+                    ratio.append(float(pt.scale[i, k] / pe.scale[i, k]))
+                    deltas = []
+                    for yaw, scale, pos in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 1, 1)):
+                        q = {n_: getattr(pe, n_).clone() for n_ in ("z_sh", "cos_sin", "scale", "position")}
+                        q["z_sh"][i, k] = codes[sid]
+                        for on, name in ((yaw, "cos_sin"), (scale, "scale"), (pos, "position")):
+                            if on:
+                                q[name][i, k] = getattr(pt, name)[i, k]
+                        deltas.append(float(score(replace(pe, **q))[i] - base[i]))
+                    rows.append(deltas)
+            scenes["encoder"].append(base)
+            scenes["search (R = 3)"].append(fit_score(*(lambda o: (o.composite.image, o.composite.depth))(
+                search_latents(model, out, b, SearchConfig())), b.rgb, b.depth))
+            scenes["true poses, encoder codes"].append(score(pt))
+            scenes["true poses, true codes for the category"].append(score(replace(pt, z_sh=z_cat)))
+            scenes["true poses, every object's code"].append(score(replace(pt, z_sh=z_all)))
+    a = np.array(rows).reshape(-1, len(PARTS))
+    print(f"{n} scenes of {args.data} [{args.split}], {args.run}: {len(a)} objects of category {args.category}; "
+          f"true / predicted scale, median {np.median(ratio) if ratio else float('nan'):.3f}")
+    print("\nThe true code with the encoder's pose and parts of the true pose: share of objects it fits better than the encoder's slot")
+    print("| " + " | ".join(PARTS) + " |")
+    print("|" + "---|" * len(PARTS))
+    print("| " + " | ".join(f"{np.mean(a[:, j] < 0):.3f}" for j in range(len(PARTS))) + " |")
+    print("| " + " | ".join(f"median {np.median(a[:, j]):+.4f}" for j in range(len(PARTS))) + " |")
+    sc = {k: torch.cat(v).numpy() for k, v in scenes.items()}
+    print("\nWhole scenes: mean fit score (lower is better), and the share of scenes below the search's")
+    print("| " + " | ".join(sc) + " |")
+    print("|" + "---|" * len(sc))
+    print("| " + " | ".join(f"{v.mean():.4f}" for v in sc.values()) + " |")
+    print("| " + " | ".join(f"{np.mean(v < sc['search (R = 3)']):.3f}" for v in sc.values()) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
