@@ -57,8 +57,8 @@ class SearchConfig:
     centre moves with its scale so that its height above the ground scales too (an object resting on the
     ground stays on it)."""
     shape_polish: int = 0
-    """With ``shape_trials``, passes of pose trials (scales, shifts, yaws, as pass 0 of the search) on a slot
-    after it takes another category's code and before that code is judged against the slot's own: the
+    """With ``shape_trials``, passes of pose trials (scales, shifts, yaws, as passes 0, 1, ... of the search) on a
+    slot after it takes a category's code and before that code is judged against the slot as it was: the
     encoder's pose was fitted to its own shape, and a cube code needs its own (0: judged at once)."""
     shape_nearest: int = 0
     """Also try, once per slot in the first pass, the prior's ``N`` training codes nearest to the slot's
@@ -274,7 +274,7 @@ class _State:
     def revert(self, scenes: torch.Tensor) -> None:
         """Back to the start latents in the scenes ``scenes`` (``(B,)`` bool)."""
         p = self.start
-        for name in ("scale", "position", "cos_sin", "z_sh"):
+        for name in _State.FIELDS:
             t, t0 = getattr(self, name), getattr(p, name)
             t[scenes] = t0[scenes]
 
