@@ -44,15 +44,20 @@ def main(argv=None) -> int:
     from prismonet.model.pose_targets import match_slots, posed_at_truth
     from prismonet.model.refine import render_latents
     from prismonet.model.search import SearchConfig, search_latents
+    from prismonet.render import SceneParams
     from prismonet.shapes.symmetry import library_yaw_periods
 
-    model, _ = load_model(args.run)
-    ds = SceneDataset(args.data, args.split)
+    try:  # ValueError covers the checkpoint's, the dataset's and the shape library's errors
+        model, _ = load_model(args.run)
+        ds = SceneDataset(args.data, args.split)
+        periods = library_yaw_periods(args.library)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"pose_shape_truth: error: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
     codes, cats = model.prior.latents.detach(), torch.tensor(model.prior.category_ids)
     if args.category not in set(cats.tolist()):
         print(f"pose_shape_truth: error: the prior has no category {args.category} (it has {sorted(set(cats.tolist()))})", file=sys.stderr)
         return 2
-    periods = library_yaw_periods(args.library)
     n = min(args.limit, len(ds))
     rows, ratio = [], []
     scenes = {k: [] for k in ("encoder", "search (R = 3)", "true poses, encoder codes", "true poses, true codes for the category",
@@ -63,9 +68,12 @@ def main(argv=None) -> int:
             out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
             H, W = b.rgb.shape[-2:]
 
-            def score(p, b=b, out=out):
-                o = render_latents(model, p, out.latents.bg_color, b.K, b.T_world_cam, b.ground_z, H, W)
-                return fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth)
+            every = torch.arange(len(b))
+
+            def score(p, idx=every, b=b, out=out):
+                """``fit_score`` of slots ``p``, drawn for the scenes ``b[idx]`` (a scene may come more than once)."""
+                o = render_latents(model, p, out.latents.bg_color[idx], b.K[idx], b.T_world_cam[idx], b.ground_z[idx], H, W)
+                return fit_score(o.composite.image, o.composite.depth, b.rgb[idx], b.depth[idx])
 
             pe = out.latents.params
             pt, _ = posed_at_truth(pe, b, periods)
@@ -81,18 +89,19 @@ def main(argv=None) -> int:
                         continue
                     z_cat[i, k] = codes[sid]
                     ratio.append(float(pt.scale[i, k] / pe.scale[i, k]))
-                    deltas = []
-                    for yaw, scale, pos in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 1, 1)):
-                        q = {n_: getattr(pe, n_).clone() for n_ in ("z_sh", "cos_sin", "scale", "position")}
-                        q["z_sh"][i, k] = codes[sid]
-                        for on, name in ((yaw, "cos_sin"), (scale, "scale"), (pos, "position")):
-                            if on:
-                                q[name][i, k] = getattr(pt, name)[i, k]
-                        deltas.append(float(score(replace(pe, **q))[i] - base[i]))
-                    rows.append(deltas)
+                    # the six variants of scene i, drawn as one batch of six copies of it
+                    idx = torch.full((len(PARTS),), i)
+                    q = SceneParams(*(None if t is None else t[idx].clone() for t in
+                                      (pe.z_sh, pe.z_tex, pe.position, pe.cos_sin, pe.scale, pe.axis, pe.active)))
+                    q.z_sh[:, k] = codes[sid]
+                    for v, on in enumerate(((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 1, 1))):
+                        for flag, name in zip(on, ("cos_sin", "scale", "position")):
+                            if flag:
+                                getattr(q, name)[v, k] = getattr(pt, name)[i, k]
+                    rows.append((score(q, idx) - base[i]).tolist())
             scenes["encoder"].append(base)
-            scenes["search (R = 3)"].append(fit_score(*(lambda o: (o.composite.image, o.composite.depth))(
-                search_latents(model, out, b, SearchConfig())), b.rgb, b.depth))
+            found = search_latents(model, out, b, SearchConfig())
+            scenes["search (R = 3)"].append(fit_score(found.composite.image, found.composite.depth, b.rgb, b.depth))
             scenes["true poses, encoder codes"].append(score(pt))
             scenes["true poses, true codes for the category"].append(score(replace(pt, z_sh=z_cat)))
             scenes["true poses, every object's code"].append(score(replace(pt, z_sh=z_all)))

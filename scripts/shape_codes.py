@@ -1,6 +1,6 @@
 """Which shape does the encoder predict? Nearest prior code (L2) of each matched slot's z_sh, by true category.
 
-    python3 scripts/shape_codes.py RUN DATA [--split test] [--limit 400] [--search R] [--set shape_trials=True]
+    python3 scripts/shape_codes.py RUN DATA [--split test] [--limit 400] [--search R] [--set shape_trials=true --set shape_yaws=[30,60]]
 
 For every predicted object matched to a true one at IoU 0.5, the category of the prior's training
 code nearest to its shape latent, against the true category (a confusion table), and the median
@@ -19,16 +19,6 @@ import torch
 CATS = ("sphere", "cylinder", "cube")
 
 
-def eval_value(text: str):
-    """A ``--set`` value: a Python literal (``True``, ``3``, ``(1.0, 1.2)``), else the text itself."""
-    import ast
-
-    try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        return text
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run")
@@ -37,21 +27,26 @@ def main(argv=None) -> int:
     ap.add_argument("--limit", type=int, default=400)
     ap.add_argument("--search", type=int, default=0)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help="a SearchConfig field for the search, e.g. shape_trials=True (repeatable)")
+                    help="a SearchConfig field for the search, as JSON, e.g. shape_trials=true or shape_yaws=[30,60] (repeatable)")
     args = ap.parse_args(argv)
     if args.limit <= 0 or args.search < 0:
         print("shape_codes: error: --limit must be positive and --search non-negative", file=sys.stderr)
         return 2
+    from prismonet.config import load_config
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.metrics import scene_detection
     from prismonet.model.io import load_model
     from prismonet.model.search import SearchConfig, search_latents
 
-    model, _ = load_model(args.run)
-    search_cfg = SearchConfig(rounds=args.search, **{k: eval_value(v) for k, v in (a.split("=", 1) for a in args.set)})
+    try:  # ValueError covers the config's, the checkpoint's and the dataset's errors
+        search_cfg = load_config(SearchConfig, "-", [f"rounds={args.search}", *args.set])
+        model, _ = load_model(args.run)
+        ds = SceneDataset(args.data, args.split)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"shape_codes: error: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
     codes = model.prior.latents.detach()  # (27, D)
     code_cat = torch.tensor(model.prior.category_ids)
-    ds = SceneDataset(args.data, args.split)
     n = min(args.limit, len(ds))
     conf = np.zeros((3, 3), np.int64)
     dist = {c: [] for c in range(3)}

@@ -317,3 +317,23 @@ def test_pose_shape_truth_script_runs_and_refuses_a_bad_category(capsys):
     assert mod.main(["shipped", data, "--split", "test", "--limit", "4", "--category", "7"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no category 7" in err[0]
+    for argv, says in ((["--library", "nope"], "unknown shape library 'nope'"), ([], "no such dataset folder")):
+        assert mod.main(["shipped", data if argv else data + "_none", "--split", "test", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], err
+
+
+@pytest.mark.parametrize("setting, says", [("foo=1", "unknown field(s) ['foo']"), ("foo", "expected key=value"),
+                                           ("shape_trials=maybe", "shape_trials: expected bool"),
+                                           ("shape_yaws=[30]", "need shape_trials=True")])
+def test_shape_codes_script_refuses_a_bad_setting_in_one_line(setting, says, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "shape_codes.py"
+    spec = importlib.util.spec_from_file_location("shape_codes", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["shipped", str(shipped_samples()), "--search", "1", "--set", setting]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0] and "Traceback" not in err[0], err
