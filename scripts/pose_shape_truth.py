@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -34,9 +35,15 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--category", type=int, default=2, help="the prior's category id (Clevr: 0 sphere, 1 cylinder, 2 cube)")
     ap.add_argument("--library", default="clevr", help="the shape library whose yaw periods the true poses take")
+    ap.add_argument("--figure", metavar="PNG", help="also draw the first --figure-rows objects: the input, the encoder's "
+                    "render, and the true code with the encoder's pose, with the true yaw and scale, and with the whole true pose")
+    ap.add_argument("--figure-rows", type=int, default=6)
+    ap.add_argument("--best-code", action="store_true",
+                    help="also draw every matched object, of every category, with each of the prior's codes at the true poses, "
+                         "and tabulate which code fits best (slower: one scene render per code and object)")
     args = ap.parse_args(argv)
-    if args.limit <= 0 or args.batch <= 0:
-        print("pose_shape_truth: error: --limit and --batch must be positive", file=sys.stderr)
+    if args.limit <= 0 or args.batch <= 0 or args.figure_rows <= 0:
+        print("pose_shape_truth: error: --limit, --batch and --figure-rows must be positive", file=sys.stderr)
         return 2
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.fit_score import fit_score
@@ -59,7 +66,8 @@ def main(argv=None) -> int:
         print(f"pose_shape_truth: error: the prior has no category {args.category} (it has {sorted(set(cats.tolist()))})", file=sys.stderr)
         return 2
     n = min(args.limit, len(ds))
-    rows, ratio = [], []
+    rows, ratio, figure = [], [], []
+    own_nearest, best = [], {c: [] for c in sorted(set(cats.tolist()))}  # per category: (best code's category, best is own)
     scenes = {k: [] for k in ("encoder", "search (R = 3)", "true poses, encoder codes", "true poses, true codes for the category",
                               "true poses, every object's code")}
     with torch.no_grad():
@@ -70,10 +78,12 @@ def main(argv=None) -> int:
 
             every = torch.arange(len(b))
 
-            def score(p, idx=every, b=b, out=out):
-                """``fit_score`` of slots ``p``, drawn for the scenes ``b[idx]`` (a scene may come more than once)."""
+            def score(p, idx=every, b=b, out=out, images=False):
+                """``fit_score`` of slots ``p``, drawn for the scenes ``b[idx]`` (a scene may come more than once); with
+                ``images`` also the drawn images."""
                 o = render_latents(model, p, out.latents.bg_color[idx], b.K[idx], b.T_world_cam[idx], b.ground_z[idx], H, W)
-                return fit_score(o.composite.image, o.composite.depth, b.rgb[idx], b.depth[idx])
+                sc = fit_score(o.composite.image, o.composite.depth, b.rgb[idx], b.depth[idx])
+                return (sc, o.composite.image) if images else sc
 
             pe = out.latents.params
             pt, _ = posed_at_truth(pe, b, periods)
@@ -85,8 +95,17 @@ def main(argv=None) -> int:
                 for k, g in zip(slots.tolist(), objs.tolist()):
                     sid = int(b.obj_shape[i, g])
                     z_all[i, k] = codes[sid]
+                    if args.best_code:  # every code of the prior on this object, every object at its true pose
+                        idx = torch.full((len(codes),), i)
+                        q = SceneParams(*(None if t is None else t[idx].clone() for t in
+                                          (pt.z_sh, pe.z_tex, pt.position, pt.cos_sin, pt.scale, pe.axis, pt.active)))
+                        q.z_sh[:, k] = codes
+                        c = int(score(q, idx).argmin())
+                        best[int(cats[sid])].append((int(cats[c]) == int(cats[sid]), c == sid))
                     if int(cats[sid]) != args.category:
                         continue
+                    same = torch.nonzero(cats == args.category)[:, 0]
+                    own_nearest.append(int(same[(codes[same] - pe.z_sh[i, k]).norm(dim=1).argmin()]) == sid)
                     z_cat[i, k] = codes[sid]
                     ratio.append(float(pt.scale[i, k] / pe.scale[i, k]))
                     # the six variants of scene i, drawn as one batch of six copies of it
@@ -98,13 +117,18 @@ def main(argv=None) -> int:
                         for flag, name in zip(on, ("cos_sin", "scale", "position")):
                             if flag:
                                 getattr(q, name)[v, k] = getattr(pt, name)[i, k]
-                    rows.append((score(q, idx) - base[i]).tolist())
+                    sc, drawn = score(q, idx, images=True)
+                    rows.append((sc - base[i]).tolist())
+                    if args.figure and len(figure) < args.figure_rows:
+                        figure.append((b.rgb[i], out.composite.image[i], float(base[i]), drawn, sc.tolist()))
             scenes["encoder"].append(base)
             found = search_latents(model, out, b, SearchConfig())
             scenes["search (R = 3)"].append(fit_score(found.composite.image, found.composite.depth, b.rgb, b.depth))
             scenes["true poses, encoder codes"].append(score(pt))
             scenes["true poses, true codes for the category"].append(score(replace(pt, z_sh=z_cat)))
             scenes["true poses, every object's code"].append(score(replace(pt, z_sh=z_all)))
+    if args.figure and figure:
+        print(f"wrote {_figure(figure, args.figure)}")
     a = np.array(rows).reshape(-1, len(PARTS))
     print(f"{n} scenes of {args.data} [{args.split}], {args.run}: {len(a)} objects of category {args.category}; "
           f"true / predicted scale, median {np.median(ratio) if ratio else float('nan'):.3f}")
@@ -114,12 +138,38 @@ def main(argv=None) -> int:
     print("| " + " | ".join(f"{np.mean(a[:, j] < 0):.3f}" for j in range(len(PARTS))) + " |")
     print("| " + " | ".join(f"median {np.median(a[:, j]):+.4f}" for j in range(len(PARTS))) + " |")
     sc = {k: torch.cat(v).numpy() for k, v in scenes.items()}
+    print(f"\nThe category's code nearest to the slot's latent is the object's own code: {np.mean(own_nearest):.3f} "
+          f"(of {len(own_nearest)}; the code a shape trial tries)")
+    if args.best_code:
+        print("\nAt the true poses, the prior's code that fits each object best: share of the right category, and the object's own code")
+        print("| category | objects | right category | own code |")
+        print("|---|---|---|---|")
+        for c, v in best.items():
+            if v:
+                a_ = np.array(v)
+                print(f"| {c} | {len(a_)} | {a_[:, 0].mean():.3f} | {a_[:, 1].mean():.3f} |")
     print("\nWhole scenes: mean fit score (lower is better), and the share of scenes below the search's")
     print("| " + " | ".join(sc) + " |")
     print("|" + "---|" * len(sc))
     print("| " + " | ".join(f"{v.mean():.4f}" for v in sc.values()) + " |")
     print("| " + " | ".join(f"{np.mean(v < sc['search (R = 3)']):.3f}" for v in sc.values()) + " |")
     return 0
+
+
+def _figure(figure, path: str):
+    """One row per object: the input, the encoder's render and three of the variants, each labelled with its fit score."""
+    from prismonet.files import write_image
+    from prismonet.viz.decomposition import labelled_panel
+    from prismonet.viz.mask_comparison import chw_to_u8, panel_grid
+
+    size, shown = (128, 128), (0, 4, 5)  # the true code at the encoder's pose, + true yaw and scale, all true
+    names = ("true code", "+ true yaw, scale", "all true")
+    grid = []
+    for rgb, enc, enc_score, drawn, scores in figure:
+        tiles = [labelled_panel(chw_to_u8(rgb.numpy()), "input", size), labelled_panel(chw_to_u8(enc.numpy()), f"encoder {enc_score:.4f}", size)]
+        tiles += [labelled_panel(chw_to_u8(drawn[v].numpy()), f"{name} {scores[v]:.4f}", size) for v, name in zip(shown, names)]
+        grid.append(tiles)
+    return write_image(Path(path), panel_grid(grid)[..., ::-1])  # RGB -> OpenCV's BGR
 
 
 if __name__ == "__main__":

@@ -46,6 +46,9 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                         "(the result is rendered with the MLP; default 0: the MLP throughout)")
     g.add_argument("--search-shapes", type=int, default=0, metavar="N",
                    help="in the search's first round, also try each slot's N nearest training shapes of the prior (default 0)")
+    g.add_argument("--search-set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="any other setting of the search (SearchConfig), as JSON, e.g. shape_trials=true or "
+                        "shape_yaws=[30,60] (repeatable; applied after the flags above)")
     g.add_argument("--refine", type=int, default=0, metavar="K", help="refine all latents for K gradient steps against the training losses")
     g.add_argument("--refine-lr", type=float, help="Adam step of the latents during refinement (default 0.01)")
     g.add_argument("--refine-pose-lr-scale", type=float, help="positions and rotations step this many times faster (default 3)")
@@ -74,7 +77,7 @@ def inference_config(args, has_depth: bool = True):
                               search_grid=getattr(args, "search_grid", 0),
                               search_shapes=getattr(args, "search_shapes", 0),
                               reseed=getattr(args, "reseed", 0), reseed_cycles=getattr(args, "reseed_cycles", 1),
-                              reseed_grow=getattr(args, "reseed_grow", 0))
+                              reseed_grow=getattr(args, "reseed_grow", 0), search_set=getattr(args, "search_set", None))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

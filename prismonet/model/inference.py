@@ -22,6 +22,8 @@ same flags and calls ``infer``, so a setting means the same thing everywhere.
 
 from __future__ import annotations
 
+import json
+
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
@@ -67,12 +69,22 @@ class InferenceConfig:
            refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False,
            prune: bool = False, search_scales: tuple[float, ...] | None = None,
            search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0,
-           search_shapes: int = 0, reseed: int = 0, reseed_cycles: int = 1, reseed_grow: int = 0) -> "InferenceConfig":
-        """From step counts, with every other setting at its measured default (validates each)."""
+           search_shapes: int = 0, reseed: int = 0, reseed_cycles: int = 1, reseed_grow: int = 0,
+           search_set: list[str] | None = None) -> "InferenceConfig":
+        """From step counts, with every other setting at its measured default (validates each). ``search_set``: more
+        ``FIELD=VALUE`` settings of the search (``SearchConfig``, values as JSON), applied last."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         scales = {} if search_scales is None else {"scales": tuple(search_scales)}
         search_cfg = SearchConfig(rounds=search, far_clip=search_far_clip, coarse_rounds=search_coarse, grid=search_grid,
                                   shape_nearest=search_shapes, **scales)
+        if search_set:
+            from prismonet.config import ConfigError, load_config, to_dict
+
+            now = [f"{k}={json.dumps(v)}" for k, v in to_dict(search_cfg).items()]
+            try:
+                search_cfg = load_config(SearchConfig, "-", now + list(search_set))
+            except ConfigError as e:
+                raise ValueError(f"search setting: {e}") from None
         return cls(extra_slots, search_cfg,
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
                    ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None,
@@ -98,7 +110,9 @@ class InferenceConfig:
                   + (", depth clipped" if self.search.far_clip else "")
                   + (f", the first {self.search.coarse_rounds} at half size" if self.search.coarse_rounds else "")
                   + (f", shapes tabulated at {self.search.grid}^3" if self.search.grid else "")
-                  + (f", the {self.search.shape_nearest} nearest prior codes tried" if self.search.shape_nearest else "")) if self.search.rounds else "",
+                  + (f", the {self.search.shape_nearest} nearest prior codes tried" if self.search.shape_nearest else "")
+                  + ((", every code of each category tried at the slot's footprint" if self.search.shape_footprint else
+                      ", each category's nearest code tried") if self.search.shape_trials else "")) if self.search.rounds else "",
                  f"{self.refine.steps} refinement steps" if self.refine.steps else "",
                  f"{self.color_fit.steps} colour-fit steps" if self.color_fit.steps else "",
                  "pruning the slots that explain nothing" if self.prune else ""]

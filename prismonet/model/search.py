@@ -24,6 +24,7 @@ from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.render import SceneParams, composite, render_objects
 from prismonet.render.background import plane_depth
+from prismonet.shapes.extents import shape_extents
 from prismonet.shapes.sdf_grid import SdfGrid
 
 
@@ -56,6 +57,22 @@ class SearchConfig:
     normalised to the unit sphere needs a smaller one than the rounded shape drawn in its place. The slot's
     centre moves with its scale so that its height above the ground scales too (an object resting on the
     ground stays on it)."""
+    shape_siblings: bool = False
+    """With ``shape_trials``, also try every other code of the category at the pose of its best variant (after the
+    ``shape_scales`` x ``shape_yaws`` variants, before ``shape_polish``). The encoder's latent says little of a shape's
+    proportions: on Clevr val the cube code nearest to a cube's slot has the cube's own proportions in 10 % of cases,
+    while at the true pose the best of the nine cube codes is the true one in 98.5 % (EVALUATION.md, session 75)."""
+    shape_footprint: bool = False
+    """With ``shape_trials``, try every code of each category (not only the one nearest to the slot's latent), each
+    scaled so that its footprint radius equals the slot's shape's and placed with its bottom where the slot's was
+    (``prismonet.shapes.extents``), at each turn of ``shape_yaws`` and multiplier of ``shape_scales``. A code of other
+    proportions than the slot's shape needs another scale: a cube drawn as a round puck is 1 / sqrt(2) of the
+    puck's scale (EVALUATION.md, session 75)."""
+    shape_margin: float = 0.0
+    """With ``shape_siblings``, ``shape_footprint`` or ``shape_polish``: a shape trial replaces the slot only in the
+    scenes whose score it lowers by at least this fraction. Trials of many codes, turns and poses can fit a round
+    object slightly better with a box than with its own shape; a margin keeps the slot unless the new shape pays
+    clearly (EVALUATION.md, session 75)."""
     shape_polish: int = 0
     """With ``shape_trials``, passes of pose trials (scales, shifts, yaws, as passes 0, 1, ... of the search) on a
     slot after it takes a category's code and before that code is judged against the slot as it was: the
@@ -84,8 +101,12 @@ class SearchConfig:
             raise ValueError(f"search: coarse_rounds must lie in [0, rounds], got {self.coarse_rounds} of {self.rounds}")
         if self.grid < 0 or self.grid == 1 or (self.grid and (self.shape_trials or self.shape_nearest)):
             raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, and not with shape trials, got {self.grid}")
-        if (self.shape_yaws or self.shape_scales or self.shape_polish) and not self.shape_trials:
-            raise ValueError("search: shape_yaws, shape_scales and shape_polish act on the shape trials, so they need shape_trials=True")
+        if (self.shape_yaws or self.shape_scales or self.shape_polish or self.shape_siblings or self.shape_footprint) \
+                and not self.shape_trials:
+            raise ValueError("search: shape_yaws, shape_scales, shape_siblings, shape_footprint and shape_polish act on the "
+                             "shape trials, so they need shape_trials=True")
+        if not 0 <= self.shape_margin < 1:
+            raise ValueError(f"search: shape_margin must lie in [0, 1), got {self.shape_margin}")
         if self.shape_polish < 0:
             raise ValueError(f"search: shape_polish must be >= 0, got {self.shape_polish}")
         if any(m <= 0 for m in self.shape_scales):
@@ -184,32 +205,47 @@ class _Level:
         self.color[:, k] = torch.where(w[:, None], c_try[:, k], self.color[:, k])
         state.keep(win, k, z_try, s_try, p_try, cs_try)
 
-    def try_shape(self, state: "_State", k: int, z: torch.Tensor, scale: torch.Tensor, position: torch.Tensor,
-                  cos_sin: torch.Tensor) -> None:
-        """Shape trial: slot ``k`` with code ``z (B, D)`` at the ``shape_scales`` x ``shape_yaws`` variants of the
-        pose ``scale (B,), position (B, 3), cos_sin (B, 2)``, kept per scene where the score falls. With
-        ``shape_polish`` the best variant is taken whatever its score, its pose searched for that many passes, and
-        only then judged against the slot as it was."""
+    def try_shape(self, state: "_State", k: int, starts, cos_sin: torch.Tensor, siblings: torch.Tensor | None = None) -> None:
+        """Shape trial: slot ``k`` with each ``(z (B, D), scale (B,), position (B, 3))`` of ``starts`` at the
+        ``shape_scales`` x ``shape_yaws`` variants of that pose (turned from ``cos_sin (B, 2)``), kept per scene where
+        the score falls; then each code of ``siblings (n, D)`` (if given) at the best variant's pose. With
+        ``shape_siblings``, ``shape_footprint`` or ``shape_polish`` the best variant is taken whatever its score, the
+        siblings tried at its pose, the winner's pose searched for ``shape_polish`` passes, and only then is the result
+        judged against the slot as it was."""
         cfg = self.cfg
-        if cfg.shape_polish:
+        late = bool(cfg.shape_polish or cfg.shape_siblings or cfg.shape_footprint)  # the variants' best is taken, judged at the end
+        if late:
             saved = (self.depth.clone(), self.mask.clone(), self.color.clone(), self.best.clone(), state.snapshot())
             self.best = torch.full_like(self.best, float("inf"))  # the first variant is taken, then the best of them
-        for m in (1.0, *(m for m in cfg.shape_scales if m != 1)):
-            p = position.clone()
-            p[:, 2] = state.ground_z + (p[:, 2] - state.ground_z) * m
-            for a in (0.0, *(y for y in cfg.shape_yaws if y % 360 != 0)):
-                self.attempt(state, k, z, scale * m, p, _turn(cos_sin, a))
-        if not cfg.shape_polish:
+        for z, scale, position in starts:
+            for m in (1.0, *(m for m in cfg.shape_scales if m != 1)):
+                p = position.clone()
+                p[:, 2] = state.ground_z + (p[:, 2] - state.ground_z) * m
+                for a in (0.0, *(y for y in cfg.shape_yaws if y % 360 != 0)):
+                    self.attempt(state, k, z, scale * m, p, _turn(cos_sin, a))
+        for zs in () if siblings is None else siblings:
+            self.attempt(state, k, zs.expand_as(state.z_sh[:, k]), state.scale[:, k], state.position[:, k], state.cos_sin[:, k])
+        if not late:
             return
         for r in range(cfg.shape_polish):
             for s_try, p_try, cs_try in _trials(cfg, cfg.decay**r, state.scale[:, k], state.position[:, k], state.cos_sin[:, k]):
                 self.attempt(state, k, state.z_sh[:, k], s_try, p_try, cs_try)
         depth, mask, color, best, snap = saved
-        worse = self.best >= best
+        worse = self.best >= best * (1 - cfg.shape_margin)
         state.restore(worse, snap)
         w = worse.view(-1, 1, 1, 1)
         self.depth, self.mask = torch.where(w, depth, self.depth), torch.where(w, mask, self.mask)
         self.color, self.best = torch.where(w[..., None], color, self.color), torch.where(worse, best, self.best)
+
+    def footprint_start(self, state: "_State", k: int, z: torch.Tensor, i: int, scale: torch.Tensor, position: torch.Tensor):
+        """``(z (B, D), scale (B,), position (B, 3))``: prior code ``z`` (row ``i``) where slot ``k`` was drawn at ``scale``
+        and ``position``: scaled to the footprint radius of the slot's starting shape, its bottom where that shape's was."""
+        r_code, d_code = state.code_extents
+        r_slot, d_slot = state.slot_extents[0][:, k], state.slot_extents[1][:, k]
+        s = scale * r_slot / r_code[i].clamp_min(1e-6)
+        p = position.clone()
+        p[:, 2] = position[:, 2] - scale * d_slot + s * d_code[i]
+        return z.expand(len(scale), -1), s, p
 
     def run_round(self, state: "_State", r: int) -> None:
         """One pass over all slots: shape trials (first pass, if asked), scales, shifts, yaws."""
@@ -222,10 +258,15 @@ class _Level:
                 continue  # never decoded (a stopped encoder): nothing to search
             if cfg.shape_trials and r == 0:
                 # every category's variants start from the slot's pose before any of them (no compounding)
-                z0, pose = state.z_sh[:, k].clone(), (state.scale[:, k].clone(), state.position[:, k].clone(), state.cos_sin[:, k].clone())
+                z0, scale, position, cos_sin = (getattr(state, n)[:, k].clone() for n in ("z_sh", "scale", "position", "cos_sin"))
                 for c in torch.unique(cats):
                     sel = codes[cats == c]  # (n_c, D)
-                    self.try_shape(state, k, sel[torch.cdist(z0, sel, compute_mode=exact).argmin(1)], *pose)
+                    if cfg.shape_footprint:  # every code of the category, each at the slot's footprint
+                        rows = torch.nonzero(cats == c)[:, 0].tolist()
+                        starts = [self.footprint_start(state, k, z, i, scale, position) for z, i in zip(sel, rows)]
+                    else:
+                        starts = [(sel[torch.cdist(z0, sel, compute_mode=exact).argmin(1)], scale, position)]
+                    self.try_shape(state, k, starts, cos_sin, siblings=sel if cfg.shape_siblings else None)
             if cfg.shape_nearest and r == 0:
                 n = min(cfg.shape_nearest, codes.shape[0])
                 dist = torch.cdist(state.z_sh[:, k], codes, compute_mode=exact)
@@ -245,6 +286,7 @@ class _State:
         self.start, self.ground_z = start, ground_z.to(start.position)  # ground_z (B,)
         self.scale, self.position = start.scale.clone(), start.position.clone()
         self.cos_sin, self.z_sh = start.cos_sin.clone(), start.z_sh.clone()
+        self.code_extents = self.slot_extents = None  # (radius, depth) of the prior's codes, (B, K) of the start's slots
 
     def params(self) -> SceneParams:
         p = self.start
@@ -294,6 +336,11 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     far = model.cfg.far_depth if cfg.far_clip else None
     bg = out.latents.bg_color
     state = _State(p, batch.ground_z)
+    if cfg.shape_trials and cfg.shape_footprint:
+        codes = model.prior.latents.to(p.z_sh.dtype)
+        state.code_extents = shape_extents(model.sdf_fn, codes, model.prior.bounds)
+        r, d = shape_extents(model.sdf_fn, p.z_sh.reshape(-1, p.z_sh.shape[-1]), model.prior.bounds)
+        state.slot_extents = (r.view(p.scale.shape), d.view(p.scale.shape))
     B, Kslots = p.z_sh.shape[:2]
     shapes = SdfGrid.tabulate(model.sdf_fn, p.z_sh.reshape(B * Kslots, -1), model.prior.bounds, cfg.grid) if cfg.grid else None
     start = (out.obj_depth, out.obj_mask, out.obj_color)  # the MLP's renders of the encoder's latents
