@@ -34,3 +34,13 @@ def test_extents_of_the_clevr_prior_match_its_shapes(shipped):
     specs = clevr_shapes()
     assert np.abs(radius.numpy() - [s.footprint_radius() for s in specs]).max() < 0.03
     assert np.abs(depth.numpy() - [s.half_extents[2] for s in specs]).max() < 0.03
+
+
+def test_prior_keeps_its_codes_extents(shipped):
+    """``ShapePrior.code_extents`` is ``shape_extents`` of its codes, computed once (the same tensors come back)."""
+    model, _, _ = shipped
+    first = model.prior.code_extents()
+    direct = shape_extents(model.sdf_fn, model.prior.latents.detach(), model.prior.bounds)
+    assert all(torch.equal(a, b) for a, b in zip(first, direct))
+    again = model.prior.code_extents()
+    assert all(a is b for a, b in zip(first, again))

@@ -337,8 +337,7 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     bg = out.latents.bg_color
     state = _State(p, batch.ground_z)
     if cfg.shape_trials and cfg.shape_footprint:
-        codes = model.prior.latents.to(p.z_sh.dtype)
-        state.code_extents = shape_extents(model.sdf_fn, codes, model.prior.bounds)
+        state.code_extents = tuple(t.to(p.z_sh.dtype) for t in model.prior.code_extents())  # computed once per prior
         r, d = shape_extents(model.sdf_fn, p.z_sh.reshape(-1, p.z_sh.shape[-1]), model.prior.bounds)
         state.slot_extents = (r.view(p.scale.shape), d.view(p.scale.shape))
     B, Kslots = p.z_sh.shape[:2]

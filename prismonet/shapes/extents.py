@@ -4,7 +4,8 @@ on a lattice (``SdfGrid``). Exact up to the lattice spacing; the Clevr prior's 2
 their true extents at 32 nodes per axis (``tests/test_extents.py``).
 
 The search uses them to put one shape where another was drawn (``SearchConfig.shape_footprint``): a code scaled to
-the slot's footprint and resting where the slot rested."""
+the slot's footprint and resting where the slot rested. A prior keeps its own codes' extents
+(``ShapePrior.code_extents``)."""
 
 from __future__ import annotations
 

@@ -49,6 +49,16 @@ class ShapePrior:
         b = self.info.get("bounds")
         return (tuple(b[0]), tuple(b[1])) if b else PADDED_CUBE
 
+    def code_extents(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(radius (N,), depth (N,))`` of the training shapes' codes (``prismonet.shapes.extents``), computed on first
+        use and kept: the decoder is frozen, and a moved copy (``to``) computes its own."""
+        if "_code_extents" not in self.__dict__:
+            from prismonet.shapes.extents import shape_extents
+
+            self.__dict__["_code_extents"] = shape_extents(lambda z, x: self.decoder(z[:, None, :], x), self.latents.detach(),
+                                                           self.bounds)
+        return self.__dict__["_code_extents"]
+
     def frozen(self) -> "ShapePrior":
         """Put the decoder in eval mode with gradients off for its weights (not its inputs)."""
         self.decoder.eval()
