@@ -3,6 +3,22 @@ import pytest
 import torch
 
 
+@pytest.fixture(scope="session")
+def script():
+    """``script(NAME)``: the module ``scripts/NAME.py``, imported from its file (the scripts folder is no package)."""
+    import importlib.util
+    from pathlib import Path
+
+    def load(name: str):
+        path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+
+    return load
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

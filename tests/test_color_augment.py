@@ -147,24 +147,13 @@ def test_recolor_batch_in_training(batch):
         TrainConfig(recolor_objects=0.5, loss=LossConfig(w_distill=0.5))
 
 
-def _script(name: str):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_shape_recall_script(capsys):
+def test_shape_recall_script(capsys, script):
     """``scripts/shape_recall.py`` on the shipped car samples: a row per shape present, a recolouring to the same
     colour changes nothing, and bad flags get one line and exit 2."""
     from prismonet.assets import samples_for
 
     data = str(samples_for("cars_keep"))
-    run = _script("shape_recall").main
+    run = script("shape_recall").main
     assert run(["cars", data, "--split", "test", "--limit", "6"]) == 0
     plain = capsys.readouterr().out
     rows = [r for r in plain.splitlines() if r.startswith("| ") and r[2].isdigit()]
@@ -181,12 +170,12 @@ def test_shape_recall_script(capsys):
         assert says in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_color_augment_figure_script(tmp_path, capsys):
+def test_color_augment_figure_script(tmp_path, capsys, script):
     import cv2
 
     from prismonet.assets import samples_for
 
-    run = _script("color_augment_figure").main
+    run = script("color_augment_figure").main
     out = tmp_path / "f.png"
     assert run([str(samples_for("cars_keep")), "--split", "test", "--scenes", "2", "--out", str(out)]) == 0
     img = cv2.imread(str(out))

@@ -764,19 +764,7 @@ def test_fit_refiner_with_the_color_term(shipped, tmp_path):
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 
-def _script(name: str):
-    """The module ``scripts/NAME.py`` (the scripts folder is no package)."""
-    import importlib
-    import sys
-
-    sys.path.insert(0, str(SCRIPTS))
-    try:
-        return importlib.import_module(name)
-    finally:
-        sys.path.remove(str(SCRIPTS))
-
-
-def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path):
+def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path, script):
     """``scripts/encoder_only.py``: the shipped model (a refiner and a colour step) without both decodes exactly as the
     model with ``refine=False``, and saved, it loads as a model of its own; a model with neither is refused in one line,
     nothing written."""
@@ -786,7 +774,7 @@ def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path):
     from prismonet.model.io import load_model
 
     scripts = SCRIPTS
-    encoder_only = _script("encoder_only").encoder_only
+    encoder_only = script("encoder_only").encoder_only
     model, b, _ = shipped
     assert model.cfg.refine_passes and model.cfg.color_step  # what the check needs
     enc = encoder_only(model).eval()
@@ -810,7 +798,7 @@ def test_encoder_only_decodes_as_the_model_unrefined(shipped, tmp_path):
     assert not (tmp_path / "again").exists()
 
 
-def test_swap_weights_takes_the_sources_parts_and_keeps_the_rest(shipped, tmp_path):
+def test_swap_weights_takes_the_sources_parts_and_keeps_the_rest(shipped, tmp_path, script):
     """``scripts/swap_weights.py``: a model's encoder replaced by another's (here the shipped encoder, nudged), its
     refiner and colour step kept; a source with a part the model lacks is refused before anything changes."""
     import copy
@@ -820,7 +808,7 @@ def test_swap_weights_takes_the_sources_parts_and_keeps_the_rest(shipped, tmp_pa
     from prismonet.model.io import load_model, save_model
 
     scripts = SCRIPTS
-    encoder_only, swap_weights = _script("encoder_only").encoder_only, _script("swap_weights").swap_weights
+    encoder_only, swap_weights = script("encoder_only").encoder_only, script("swap_weights").swap_weights
     model, _, _ = shipped
     enc = copy.deepcopy(encoder_only(model))
     with torch.no_grad():

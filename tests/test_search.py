@@ -400,17 +400,11 @@ def test_ab_script_refuses_an_unknown_revision_in_one_line():
     assert "search_ab: error: no prismonet/model/search.py at 'no-such-revision'" in last and "Traceback" not in r.stderr
 
 
-def test_pose_shape_truth_script_runs_and_refuses_a_bad_category(capsys, tmp_path):
+def test_pose_shape_truth_script_runs_and_refuses_a_bad_category(capsys, tmp_path, script):
     """``scripts/pose_shape_truth.py`` on four shipped test scenes prints both tables and draws one labelled row per
     object of the category (five panels of 128 pixels and a label strip); a category the prior lacks is refused in
     one line."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "pose_shape_truth.py"
-    spec = importlib.util.spec_from_file_location("pose_shape_truth", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = script("pose_shape_truth")
     data = str(shipped_samples())
     png = tmp_path / "cubes.png"
     assert mod.main(["shipped", data, "--split", "test", "--limit", "4", "--batch", "4", "--figure", str(png), "--figure-rows", "2"]) == 0
@@ -435,34 +429,17 @@ def test_pose_shape_truth_script_runs_and_refuses_a_bad_category(capsys, tmp_pat
 @pytest.mark.parametrize("setting, says", [("foo=1", "unknown field(s) ['foo']"), ("foo", "expected key=value"),
                                            ("shape_trials=maybe", "shape_trials: expected bool"),
                                            ("shape_yaws=[30]", "need shape_trials=True")])
-def test_shape_codes_script_refuses_a_bad_setting_in_one_line(setting, says, capsys):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "shape_codes.py"
-    spec = importlib.util.spec_from_file_location("shape_codes", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+def test_shape_codes_script_refuses_a_bad_setting_in_one_line(setting, says, capsys, script):
+    mod = script("shape_codes")
     assert mod.main(["shipped", str(shipped_samples()), "--search", "1", "--set", setting]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0] and "Traceback" not in err[0], err
 
 
-def _script(name: str):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_shape_codes_with_true_parts(capsys):
+def test_shape_codes_with_true_parts(capsys, script):
     """``--true-parts`` gives the cubes' slots parts of their true pose before the (here empty) search, and the table's
     header says so; a part it does not know is refused in one line."""
-    mod = _script("shape_codes")
+    mod = script("shape_codes")
     data = str(shipped_samples())
     assert mod.main(["shipped", data, "--limit", "4", "--true-parts", "position,yaw,scale"]) == 0
     out = capsys.readouterr().out
@@ -472,14 +449,22 @@ def test_shape_codes_with_true_parts(capsys):
     assert len(err) == 1 and "--true-parts takes position, yaw and scale, got 'colour'" in err[0]
 
 
-def test_pose_shape_truth_best_code_reads_the_right_category_at_the_true_pose(capsys):
+def test_pose_shape_truth_best_code_reads_the_right_category_at_the_true_pose(capsys, script):
     """``--best-code`` on four shipped test scenes: every matched object drawn with each of the 27 codes at the true poses.
     The shipped prior fits each object best with a code of its own category (the objective tells the categories apart
     at the true pose: session 75 measured 95-100 % on 64 val scenes)."""
-    mod = _script("pose_shape_truth")
+    mod = script("pose_shape_truth")
     assert mod.main(["shipped", str(shipped_samples()), "--split", "test", "--limit", "4", "--batch", "4", "--best-code"]) == 0
     out = capsys.readouterr().out
     assert "The category's code nearest to the slot's latent is the object's own code" in out
     rows = [line.split("|") for line in out.splitlines() if line.startswith("| ") and line.count("|") == 5 and "category" not in line]
     assert rows and sum(int(r[2]) for r in rows) >= 8  # about three objects per scene, all matched
     assert min(float(r[3]) for r in rows) >= 0.5
+
+
+@pytest.mark.parametrize("argv, says", [(["--figure-rows", "0"], "--figure-rows must be positive"),
+                                        (["--limit", "0"], "--limit, --batch and --figure-rows must be positive")])
+def test_pose_shape_truth_refuses_bad_counts_in_one_line(argv, says, capsys, script):
+    assert script("pose_shape_truth").main(["shipped", str(shipped_samples()), "--split", "test", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0], err

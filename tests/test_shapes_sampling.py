@@ -156,29 +156,18 @@ def test_fast_winding_number_equals_the_direct_formula():
     assert ((fast > 0.5) == (np.linalg.norm(p, axis=1) < 0.99)).mean() > 0.97  # inside the sphere, despite the hole
 
 
-def _script(name):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_generated_training_shapes_are_closed_and_normalised():
+def test_generated_training_shapes_are_closed_and_normalised(script):
     """``scripts/revolved_shapes.py``: every kind of revolved profile gives a watertight mesh with largest half-extent 1,
     round about z; ``scripts/stretch_shapes.py``: a unit cube stretched z x 0.5 has half-extents (1, 1, 0.5) after
     normalising, and bad stretches are refused."""
-    rev = _script("revolved_shapes")
+    rev = script("revolved_shapes")
     rng = np.random.default_rng(0)
     for kind in rev.KINDS:
         v, f = rev.revolved_mesh(kind, rng)
         half = (v.max(0) - v.min(0)) / 2
         assert trimesh.Trimesh(v, f, process=False).is_watertight, kind
         assert half.max() == pytest.approx(1.0) and half[0] == pytest.approx(half[1], rel=0.02), kind
-    st = _script("stretch_shapes")
+    st = script("stretch_shapes")
     box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
     v = st.stretched(np.asarray(box.vertices), np.asarray(box.faces), st.parse_stretch("z=0.5"))
     assert ((v.max(0) - v.min(0)) / 2).tolist() == pytest.approx([1.0, 1.0, 0.5])
