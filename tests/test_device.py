@@ -120,3 +120,30 @@ def test_the_search_plan_by_device_and_that_it_finds_the_same_crossings():
     assert 0 < cpu.ray.numel() < R
     for a, b in ((cpu.ray, accel.ray), (cpu.t_a, accel.t_a), (cpu.t_b, accel.t_b), (cpu.miss_ray, accel.miss_ray), (cpu.t_min, accel.t_min)):
         assert torch.equal(a, b)
+
+
+def test_the_distillation_search_makes_no_tensor_off_the_inputs_device(scenes):
+    """``prismonet distill --device cuda`` runs the test-time steps on the GPU (session 76: 9,000 Clevr scenes in 4
+    minutes on a lent H200). The same probe as above on that path: the search with footprint shape trials, the far clip
+    and the colour fit, on the shipped model."""
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.inference import InferenceConfig, infer
+    from prismonet.model.io import load_model, training_loss_config
+
+    model, info = load_model("clevr3_fc")
+    batch = SceneDataset(scenes, "test").batch([0])
+    cfg = InferenceConfig.of(search=1, fit_color=2, search_far_clip=True,
+                             search_set=["shape_trials=true", "shape_footprint=true", "shape_yaws=[30]", "shape_polish=1"])
+    with torch.device("meta"):
+        out = infer(model.eval(), batch, cfg, training_loss_config(info))
+    assert out.composite.image.device.type == "cpu" and torch.isfinite(out.composite.image).all()
+
+
+def test_distill_on_cuda_without_it_is_one_clear_line(tmp_path, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    from prismonet.cli import main
+
+    assert main(["distill", "clevr3_fc", str(tmp_path / "nothing"), "--out", str(tmp_path / "t"), "--device", "cuda"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no CUDA device" in err[0]

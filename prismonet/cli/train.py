@@ -29,10 +29,12 @@ def cmd_distill(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.distill_fit import fit_targets, true_pose_search, weights_digest
     from prismonet.model.io import load_model, training_loss_config
+    from prismonet.model.trainer import training_device
 
     if args.batch <= 0:
         raise ValueError(f"--batch must be positive, got {args.batch}")
     cfg = inference_config(args)  # validate first
+    device = training_device(args.device)
     if args.true_poses:
         cfg = true_pose_search(cfg)
     model, info = load_model(args.checkpoint)
@@ -41,7 +43,7 @@ def cmd_distill(args) -> int:
     count = len(ds) if args.count is None else args.count
     meta = {"model": str(args.checkpoint), "model_digest": weights_digest(model), "data": str(args.data), "split": args.split}
     s = fit_targets(model, ds, args.out, count, cfg, batch_size=args.batch, progress=not args.quiet, meta=meta,
-                    loss_cfg=training_loss_config(info), true_poses=args.true_poses)
+                    loss_cfg=training_loss_config(info), true_poses=args.true_poses, device=device)
     extra = f"; fit score {s['score_before']:.4f} -> {s['score_after']:.4f} on the chunks made now" if "score_before" in s else ""
     print(f"distillation targets for {s['scenes']} scenes of {args.data} [{args.split}] in {args.out}{extra}")
     return 0
@@ -136,6 +138,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--true-poses", action="store_true",
                    help="+ 3D pose variant (supervised): start from the true poses and search only shapes (--search-shapes) and colours")
+    p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA if there is one); a folder's chunks may come from either (same settings)")
     p.add_argument("--quiet", action="store_true")
     add_inference_args(p, search=3, fit_color=50)
     p.set_defaults(func=cmd_distill, outputs=[("out", "dir")])

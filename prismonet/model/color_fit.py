@@ -53,7 +53,7 @@ def fit_colors(model, out: ModelOutput, batch, cfg: ColorFitConfig = ColorFitCon
     z = p.z_tex.detach().clone().requires_grad_(True)
     bg = out.latents.bg_color.detach().clone().requires_grad_(True)
     best_z, best_bg = z.detach().clone(), bg.detach().clone()
-    best = torch.full((rgb.shape[0],), float("inf"), dtype=rgb.dtype)
+    best = torch.full((rgb.shape[0],), float("inf"), dtype=rgb.dtype, device=rgb.device)
     opt = torch.optim.Adam([z, bg], lr=cfg.lr)
     with torch.enable_grad():
         for i in range(cfg.steps + 1):  # the last pass only scores the final step

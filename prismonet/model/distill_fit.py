@@ -45,7 +45,8 @@ def true_pose_search(cfg):
 
 
 def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int = 16,
-                progress: bool = True, meta: dict | None = None, loss_cfg=None, true_poses: bool = False) -> dict:
+                progress: bool = True, meta: dict | None = None, loss_cfg=None, true_poses: bool = False,
+                device: torch.device | str = "cpu") -> dict:
     """Fit targets for scenes ``0 .. count-1`` of ``ds`` into ``out_dir`` (resumable) with the
     test-time steps of ``cfg`` (an ``InferenceConfig`` without extra slots: slot k must stay encoder
     step k; ``loss_cfg``: the training losses any refinement uses). ``distill.CHUNK`` scenes a file.
@@ -97,7 +98,7 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
     tmp = info_path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(info, indent=1))
     tmp.replace(info_path)
-    model.eval()
+    model.to(device).eval()
     before, after = [], []
     chunks = range(0, count, distill.CHUNK)
     # shape codes are targets only when the search could change them (else they would anchor the encoder to its own)
@@ -109,7 +110,7 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
             continue
         rows: dict[str, list[torch.Tensor]] = {k: [] for k in fields}
         for s in range(c0, min(c0 + distill.CHUNK, count), batch_size):
-            b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count))))
+            b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count)))).to(device)
 
             def score_encoder(name, o, b=b):
                 if name == "encoder":
@@ -125,9 +126,9 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
             for k, v in (("scale", p.scale), ("position", p.position), ("cos_sin", p.cos_sin), ("z_tex", p.z_tex),
                          ("bg_color", o.latents.bg_color), (distill.VISIBLE, won), (distill.SHAPE, p.z_sh)):
                 if k in rows:
-                    rows[k].append(v.detach().float())
+                    rows[k].append(v.detach().float().cpu())
         save_checkpoint(path, {k: torch.cat(v) for k, v in rows.items()}, {"first": c0})
     summary = {"scenes": count, "chunks": len(chunks)}
     if before:
-        summary.update(score_before=float(torch.cat(before).mean()), score_after=float(torch.cat(after).mean()))
+        summary.update(score_before=float(torch.cat(before).mean().cpu()), score_after=float(torch.cat(after).mean().cpu()))
     return summary

@@ -252,17 +252,17 @@ class _Level:
         cfg, p = self.cfg, state.start
         codes = self.model.prior.latents.to(p.z_sh.dtype)
         exact = "donot_use_mm_for_euclid_dist"  # cdist's matmul path leaves a code ~1e-4 from itself
-        cats = torch.as_tensor(self.model.prior.category_ids)
+        ids = [int(c) for c in self.model.prior.category_ids]
         for k in range(state.scale.shape[1]):
             if p.active is not None and not p.active[:, k].any():
                 continue  # never decoded (a stopped encoder): nothing to search
             if cfg.shape_trials and r == 0:
                 # every category's variants start from the slot's pose before any of them (no compounding)
                 z0, scale, position, cos_sin = (getattr(state, n)[:, k].clone() for n in ("z_sh", "scale", "position", "cos_sin"))
-                for c in torch.unique(cats):
-                    sel = codes[cats == c]  # (n_c, D)
+                for c in sorted(set(ids)):
+                    rows = [i for i, ci in enumerate(ids) if ci == c]
+                    sel = codes[rows]  # (n_c, D)
                     if cfg.shape_footprint:  # every code of the category, each at the slot's footprint
-                        rows = torch.nonzero(cats == c)[:, 0].tolist()
                         starts = [self.footprint_start(state, k, z, i, scale, position) for z, i in zip(sel, rows)]
                     else:
                         starts = [(sel[torch.cdist(z0, sel, compute_mode=exact).argmin(1)], scale, position)]

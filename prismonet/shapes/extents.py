@@ -20,7 +20,8 @@ def shape_extents(sdf_fn, z: torch.Tensor, box: Box, resolution: int = 32) -> tu
     """``(radius (N,), depth (N,))`` of the shapes ``z (N, D)`` in object units: the largest ``hypot(x, y)`` and
     ``-z`` over the lattice nodes of ``box`` inside each shape (SDF < 0). A shape with no node inside gets 0 and 0."""
     grid = SdfGrid.tabulate(sdf_fn, z, box, resolution)
-    axes = [torch.linspace(box[0][i], box[1][i], resolution, dtype=grid.values.dtype) for i in range(3)]
+    axes = [torch.linspace(box[0][i], box[1][i], resolution, dtype=grid.values.dtype, device=grid.values.device)
+            for i in range(3)]
     x, y, h = torch.meshgrid(*axes, indexing="ij")
     inside = grid.values < 0  # (N, G, G, G)
     zero = grid.values.new_zeros(())

@@ -40,7 +40,7 @@ class SdfGrid:
         ``resolution^3`` lattice nodes of ``box``."""
         if resolution < 2:
             raise ValueError(f"SdfGrid: resolution must be at least 2 nodes per axis, got {resolution}")
-        axes = [torch.linspace(box[0][i], box[1][i], resolution, dtype=z.dtype) for i in range(3)]
+        axes = [torch.linspace(box[0][i], box[1][i], resolution, dtype=z.dtype, device=z.device) for i in range(3)]
         nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(1, -1, 3)  # (1, G^3, 3)
         G3 = nodes.shape[1]
         rows = max(1, TABULATE_POINTS // G3)
@@ -55,14 +55,14 @@ class SdfGrid:
     @property
     def codes(self) -> torch.Tensor:
         """``(N, 1)``: each shape's code for ``__call__``, its row in the table."""
-        return torch.arange(self.values.shape[0], dtype=self.values.dtype)[:, None]
+        return torch.arange(self.values.shape[0], dtype=self.values.dtype, device=self.values.device)[:, None]
 
     def __call__(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``z (R, 1)`` codes (from ``codes``), ``x (R, S, 3)`` object-frame points -> ``(R, S)`` signed
         distances, trilinear between the lattice nodes; points outside the box take the value at its
         nearest face (the renderer samples only inside it)."""
         N, G = self.values.shape[0], self.resolution
-        lo, hi = (torch.tensor(b, dtype=x.dtype) for b in self.box)
+        lo, hi = (torch.tensor(b, dtype=x.dtype, device=x.device) for b in self.box)
         u = ((x - lo) * ((G - 1) / (hi - lo))).clamp(0, G - 1)  # (R, S, 3) in node units
         # one volume of the N tables stacked along x: a clamped point never blends two shapes' nodes
         ux = u[..., 0] + z[:, 0].round()[:, None] * G

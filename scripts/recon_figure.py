@@ -1,0 +1,78 @@
+"""Several models' feed-forward reconstructions of the same scenes, one labelled figure: a row per scene; the input
+image and its depth (shaded, so that flat faces and corners show) first, then each model's rendered image and shaded
+depth. The scenes are the first ``--rows`` of the split (of the first ``--limit``) holding an object of ``--category``.
+
+    python3 scripts/recon_figure.py clevr3_fit13k runs/s76/c3_fp9k_fit6000_2p --names "shipped stage 1,footprint targets" \\
+        --data data/clevr3 --split val --category 2 --rows 6 --out benchmarks/cubes_s76_ff.png
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from prismonet.data.dataset import SceneDataset
+from prismonet.model.io import load_model
+from prismonet.viz.decomposition import labelled_panel
+from prismonet.viz.mask_comparison import PANEL, chw_to_u8, panel_grid
+
+
+def shaded_depth(depth: np.ndarray, fx: float, light=(-0.4, -0.5, -1.0)) -> np.ndarray:
+    """``(H, W)`` depth along the optical axis to ``(H, W, 3)`` uint8 grey shading of its surface normals, lit from
+    the direction ``light`` (OpenCV camera: x right, y down, z forward; the default is up, left and towards the
+    camera, so that the ground and tops are bright). 0 depth = black."""
+    d = np.asarray(depth, np.float64).squeeze()
+    gy, gx = np.gradient(d)
+    step = np.maximum(d, 1e-6) / fx  # metres per pixel at that depth
+    n = np.stack([gx / step, gy / step, -np.ones_like(d)], -1)  # d/du x d/dv, turned to face the camera (-z)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    to_light = np.asarray(light, np.float64) / np.linalg.norm(light)
+    shade = np.clip((n * to_light).sum(-1), 0, 1) * 0.8 + 0.2
+    return np.where(d[..., None] > 0, np.rint(shade[..., None] * 255), 0).repeat(3, -1).astype(np.uint8)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("models", nargs="+", help="run folders or shipped names")
+    ap.add_argument("--names", default=None, help="comma-separated column labels (default: the model arguments)")
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--category", type=int, default=2, help="show scenes with an object of this category id (Clevr: 2, cubes)")
+    ap.add_argument("--rows", type=int, default=6)
+    ap.add_argument("--limit", type=int, default=200, help="scenes searched for --category")
+    ap.add_argument("--out", required=True, help="PNG path")
+    args = ap.parse_args()
+    names = args.names.split(",") if args.names else args.models
+    if len(names) != len(args.models):
+        raise SystemExit(f"--names: {len(names)} labels for {len(args.models)} models")
+    if args.rows < 1:
+        raise SystemExit(f"--rows must be at least 1, got {args.rows}")
+    ds = SceneDataset(args.data, split=args.split)
+    cats = np.asarray(ds.arrays["obj_category"][: min(args.limit, len(ds))])
+    idx = [i for i in range(len(cats)) if (cats[i] == args.category).any()][: args.rows]
+    if not idx:
+        raise SystemExit(f"no scene among the first {len(cats)} of {args.data} ({args.split}) has an object of category {args.category}")
+    b = ds.batch(idx)
+    outs = []
+    with torch.no_grad():
+        for m in args.models:
+            o = load_model(m)[0].eval()(b.rgb, b.K, b.T_world_cam, b.ground_z).composite
+            outs.append((o.image.numpy(), o.depth.numpy()))
+    fx = b.K[:, 0, 0].numpy()
+    rows = []
+    for r, i in enumerate(idx):
+        tiles = [labelled_panel(chw_to_u8(b.rgb[r].numpy()), f"input (val {i})", PANEL),
+                 labelled_panel(shaded_depth(b.depth[r].numpy(), fx[r]), "input depth", PANEL)]
+        for name, (image, depth) in zip(names, outs):
+            tiles += [labelled_panel(chw_to_u8(image[r]), name, PANEL),
+                      labelled_panel(shaded_depth(depth[r], fx[r]), f"{name}: depth", PANEL)]
+        rows.append(tiles)
+    from prismonet.files import write_image
+
+    path = write_image(args.out, panel_grid(rows)[..., ::-1])  # RGB -> OpenCV's BGR
+    print(f"wrote {path}: scenes {idx}")
+
+
+if __name__ == "__main__":
+    main()
