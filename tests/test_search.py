@@ -117,7 +117,9 @@ def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid
                                  dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1), dict(grid=-1), dict(grid=1),
                                  dict(grid=16, shape_trials=True), dict(grid=16, shape_nearest=3), dict(shape_nearest=-1),
                                  dict(shape_yaws=(30.0,)), dict(shape_scales=(0.8,)), dict(shape_polish=1), dict(shape_siblings=True), dict(shape_footprint=True), dict(shape_trials=True, shape_margin=1.0),
-                                 dict(shape_trials=True, shape_scales=(0.0,)), dict(shape_trials=True, shape_polish=-1)])
+                                 dict(shape_trials=True, shape_scales=(0.0,)), dict(shape_trials=True, shape_polish=-1),
+                                 dict(rounds=3, shape_round=1), dict(rounds=3, shape_trials=True, shape_round=3),
+                                 dict(rounds=3, shape_trials=True, shape_round=-1)])
 def test_search_config_rejects_bad_values(bad):
     with pytest.raises(ValueError, match="search"):
         SearchConfig(**bad)
@@ -293,6 +295,23 @@ def test_shape_polish_moves_a_new_shape_before_judging_it(shipped):
     at_once = search_latents(model, start, b, SearchConfig(**cfg))
     assert not torch.allclose(at_once.composite.image, target.composite.image, atol=1e-3)
     assert (score(polished) <= score(at_once) + 1e-7).all() and (score(at_once) <= score(start) + 1e-7).all()
+
+
+def test_shape_round_tries_shapes_after_a_pass_of_pose_trials(shipped):
+    """Target: as above, the cubes moved 0.2 along x. In scene 1 the shape trials of pass 0 (judged at once) leave the
+    unmoved cube behind the cylinder, and no later pass tries shapes again; with ``shape_round=1`` pass 0 first moves
+    the cylinder by the shift trial of 0.2, and pass 1's shape trial then lands it on the target (as in scenes 2 and 3,
+    which pass 0 gets right too). In scene 0 the full-size cylinder is not moved by pass 0, so neither gets it."""
+    model, _, out = shipped
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    cube, truth, target, start = _cube_target(model, out, b, 0.8, 30.0, shift=0.2)
+    cfg = dict(scales=(), shifts=(0.2,), yaws=(), rounds=2, shape_trials=True, shape_scales=(0.8,), shape_yaws=(30.0,))
+    on_cube = lambda q: (q.z_sh[:, 0] - cube).norm(dim=-1) < 1e-5  # noqa: E731
+    late = search_latents(model, start, b, SearchConfig(shape_round=1, **cfg)).latents.params
+    first = search_latents(model, start, b, SearchConfig(**cfg)).latents.params
+    assert on_cube(late).tolist() == [False, True, True, True]
+    assert on_cube(first).tolist() == [False, False, True, True]
+    assert torch.allclose(late.position[1:, 0], truth.position[1:, 0], atol=1e-5)
 
 
 def test_shape_siblings_try_the_category_codes_the_latent_does_not_point_to(shipped):

@@ -44,8 +44,8 @@ class SearchConfig:
     w_image: float = 1.0
     w_depth: float = 0.1
     shape_trials: bool = False
-    """Also try, once per slot in the first pass, the prior's training code nearest to the slot's
-    shape latent within each shape category (sphere, cylinder, cube for Clevr): the encoder's
+    """Also try, once per slot in the first pass (or pass ``shape_round``), the prior's training code nearest to the
+    slot's shape latent within each shape category (sphere, cylinder, cube for Clevr): the encoder's
     latents drift towards one category (cubes come out nearest a cylinder code, EVALUATION.md)."""
     shape_yaws: tuple[float, ...] = ()
     """With ``shape_trials``, also try each category's code turned by these angles (degrees) about the
@@ -77,6 +77,10 @@ class SearchConfig:
     """With ``shape_trials``, passes of pose trials (scales, shifts, yaws, as passes 0, 1, ... of the search) on a
     slot after it takes a category's code and before that code is judged against the slot as it was: the
     encoder's pose was fitted to its own shape, and a cube code needs its own (0: judged at once)."""
+    shape_round: int = 0
+    """The pass (0-based) in which the shape trials run: 0, before any pose trial; 1, after a pass of pose trials on
+    the encoder's shapes (a slot then starts its shape trials nearer its object, and its footprint is measured
+    there)."""
     shape_nearest: int = 0
     """Also try, once per slot in the first pass, the prior's ``N`` training codes nearest to the slot's
     shape latent, whatever their category (0: none). For priors of many similar shapes (chairs), where
@@ -107,6 +111,8 @@ class SearchConfig:
                              "shape trials, so they need shape_trials=True")
         if not 0 <= self.shape_margin < 1:
             raise ValueError(f"search: shape_margin must lie in [0, 1), got {self.shape_margin}")
+        if self.shape_round and not (self.shape_trials and 0 <= self.shape_round < self.rounds):
+            raise ValueError(f"search: shape_round must name one of the {self.rounds} passes and needs shape_trials, got {self.shape_round}")
         if self.shape_polish < 0:
             raise ValueError(f"search: shape_polish must be >= 0, got {self.shape_polish}")
         if any(m <= 0 for m in self.shape_scales):
@@ -256,7 +262,7 @@ class _Level:
         for k in range(state.scale.shape[1]):
             if p.active is not None and not p.active[:, k].any():
                 continue  # never decoded (a stopped encoder): nothing to search
-            if cfg.shape_trials and r == 0:
+            if cfg.shape_trials and r == cfg.shape_round:
                 # every category's variants start from the slot's pose before any of them (no compounding)
                 z0, scale, position, cos_sin = (getattr(state, n)[:, k].clone() for n in ("z_sh", "scale", "position", "cos_sin"))
                 for c in sorted(set(ids)):
