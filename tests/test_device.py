@@ -139,11 +139,40 @@ def test_the_distillation_search_makes_no_tensor_off_the_inputs_device(scenes):
     assert out.composite.image.device.type == "cpu" and torch.isfinite(out.composite.image).all()
 
 
-def test_distill_on_cuda_without_it_is_one_clear_line(tmp_path, capsys):
+@pytest.mark.parametrize("command", [["distill"], ["refiner", "--targets", "t"]])
+def test_distill_and_refiner_on_cuda_without_it_is_one_clear_line(command, tmp_path, capsys):
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     from prismonet.cli import main
 
-    assert main(["distill", "clevr3_fc", str(tmp_path / "nothing"), "--out", str(tmp_path / "t"), "--device", "cuda"]) != 0
+    argv = [command[0], "clevr3_fc", str(tmp_path / "nothing"), *command[1:], "--out", str(tmp_path / "o"), "--device", "cuda"]
+    assert main(argv) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no CUDA device" in err[0]
+
+
+def test_the_refiner_fit_makes_no_tensor_off_the_inputs_device(scenes):
+    """``prismonet refiner --device cuda``: the same probe on the refiner fit's encoder cache and its loss (keep, shape
+    and colour terms), forward and backward, with targets that are the cache's own latents moved a little."""
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.distill import DistillTargets, DistillWeights
+    from prismonet.model.prismonet import PriSMONet
+    from prismonet.model.refiner_fit import _held_out_loss, _loss, encoder_cache, with_refiner
+
+    torch.manual_seed(0)
+    model = with_refiner(PriSMONet(ModelConfig(soft_mask_tau=0.05)), refiner_glimpse=0.375, refiner_coords=True,
+                         refiner_shape=True, refiner_keep=True)
+    ds = SceneDataset(scenes, "test")
+    targets = DistillTargets.__new__(DistillTargets)
+    with torch.device("meta"):
+        cache = encoder_cache(model, ds, 4, batch_size=2, progress=False)
+        targets.t = {k: cache[k] + 0.05 for k in ("scale", "position", "cos_sin", "z_tex", "z_sh")}
+        targets.t.update(bg_color=torch.full((4, 3), 0.5, device="cpu"), visible=torch.full((4, 3), 100.0, device="cpu"))
+        targets.count = 4
+        model.refiner.train()
+        loss = _loss(model, cache, ds, targets, torch.arange(4, device="cpu"), DistillWeights(background=0.0, texture=0.1), 0.1)
+        loss.backward()
+        held = _held_out_loss(model, cache, ds, targets, torch.arange(2, 4, device="cpu"), DistillWeights(background=0.0, texture=0.1))
+    assert loss.device.type == "cpu" and torch.isfinite(loss) and held == held
+    assert all(p.grad is not None for p in model.refiner.parameters() if p.requires_grad)

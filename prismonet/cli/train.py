@@ -54,7 +54,9 @@ def cmd_refiner(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.io import load_model
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+    from prismonet.model.trainer import training_device
 
+    device = training_device(args.device)
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
                            texture=args.texture, color=args.color, true_poses=args.true_poses,
                            fill_hidden=args.fill_hidden, recolor=args.recolor)  # validate first
@@ -74,7 +76,8 @@ def cmd_refiner(args) -> int:
     if meta and meta.get("model_digest") != weights_digest(maker) and not _made_by_refined(meta, weights_digest(maker)):
         raise ValueError(f"{args.targets}: targets made by other weights ({meta.get('model_digest')}), not {maker_name}'s"
                          + ("" if args.targets_from else " (--targets-from MODEL names the model that made them)"))
-    s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)}, progress=not args.quiet)
+    s = fit_refiner(model, ds, args.targets, args.out, cfg, info={**info, "init_from": str(args.checkpoint)},
+                    progress=not args.quiet, device=device)
     print(json.dumps(s))
     print(f"run folder: {args.out}  (model.safetensors + model.json with the refiner, checkpoint.safetensors, log.jsonl)")
     return 0
@@ -178,6 +181,7 @@ def add_parsers(sub) -> None:
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")
+    r.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA if there is one); a run may resume on another")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])
     _add_color_step_parser(sub)

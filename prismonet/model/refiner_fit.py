@@ -94,13 +94,13 @@ def with_refiner(model, passes: int = 1, **fields):
 @torch.no_grad()
 def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
     """The model's unrefined decoding of scenes ``0 .. count-1``: composite colour (float16), instance
-    ids, slot silhouettes and latents."""
+    ids, slot silhouettes and latents, on the model's device."""
     from tqdm import tqdm
 
     model.eval()
     rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("comp", "instance", "obj_mask", "z_sh", "z_tex", "position", "cos_sin", "scale")}
     for s in tqdm(range(0, count, batch_size), desc="encoder outputs", unit="batch", disable=not progress):
-        b = ds.batch(list(range(s, min(s + batch_size, count))))
+        b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
         out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
         p = out.latents.params
         rows["comp"].append(out.composite.image.half())
@@ -113,7 +113,7 @@ def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = 
 
 def cached_refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[torch.Tensor, torch.Tensor]:
     """The refiner's inputs for the cached decodings of scenes ``idx`` of ``ds`` (their latents ``params``)."""
-    b = ds.batch(idx.tolist())
+    b = ds.batch(idx.tolist()).to(idx.device)
     return model.refiner_inputs(b.rgb, cache["comp"][idx].float(), cache["instance"][idx].long(), cache["obj_mask"][idx],
                                 params, b.K, b.T_world_cam)
 
@@ -124,7 +124,7 @@ COLOR_POINTS = 64
 
 def color_points(n: int = COLOR_POINTS) -> torch.Tensor:
     """``(n, 3)``: the fixed comparison points (the same for every run: seed 0)."""
-    return torch.rand(n, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    return torch.rand(n, 3, generator=torch.Generator().manual_seed(0), device="cpu") * 2 - 1  # moved where it is used
 
 
 def color_term(color_fn, z_tex: torch.Tensor, target_z_tex: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
@@ -147,6 +147,7 @@ def color_term(color_fn, z_tex: torch.Tensor, target_z_tex: torch.Tensor, target
 def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0) -> torch.Tensor:
     from prismonet.render import SceneParams
 
+    idx = idx.to(cache["scale"].device)  # the batch, the cache and the targets go where the model is
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
     delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, cache, ds, idx, params)), model.cfg.refiner_keep)
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)  # every slot moves: the regression sees all
@@ -178,12 +179,14 @@ def refiner_record(model) -> dict:
 
 
 def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: RefinerFitConfig = RefinerFitConfig(),
-                info: dict | None = None, progress: bool = True, cache: dict[str, torch.Tensor] | None = None) -> dict:
+                info: dict | None = None, progress: bool = True, cache: dict[str, torch.Tensor] | None = None,
+                device: torch.device | str = "cpu") -> dict:
     """Train ``model``'s refiner (``model.cfg.refine_passes`` >= 1; see ``with_refiner``) on the targets in
     ``targets_dir`` for the scenes of ``ds`` (the split they were made on), then save the whole model in
     ``out_dir``. ``info``: the base model's record (its training config is kept). ``cache``: ``encoder_cache``'s
     output for these scenes, when several refiners are fitted on one encoder (else it is computed here).
-    Returns a summary."""
+    ``device``: where the model, the cache and each batch go (the checkpoints and the model are saved from the CPU, so a
+    run may resume on another device). Returns a summary."""
     from prismonet.checkpoint import resume_part, save_part
     from prismonet.model.part_fit import append_row, batch_indices, fit_steps, read_rows
     from prismonet.model.io import save_model
@@ -221,6 +224,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
 
         ds = RecoloredScenes(ds, model.cfg.far_depth, seed=cfg.seed)
     ckpt = out / "checkpoint.safetensors"
+    model.to(device)
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = resume_part(ckpt, "refiner.", model.refiner, opt, record, DistillError)
@@ -228,6 +232,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
         cache = encoder_cache(model, ds, count, progress=progress)
     elif len(cache["scale"]) < count:
         raise DistillError(f"the encoder cache holds {len(cache['scale'])} scenes, the targets {count}")
+    else:
+        cache = {k: v.to(device) for k, v in cache.items()}
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
     log = out / "log.jsonl"
@@ -249,6 +255,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
                      loss_at, cfg.checkpoint_every, report, lambda at: save_part(ckpt, "refiner.", model.refiner, opt, at, record),
                      "refiner", progress)
     model.eval()
+    model.to("cpu")
     base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
     save_model(model, out / "model", {**base, "refiner_fit": record})
     rows = read_rows(log)
