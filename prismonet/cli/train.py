@@ -145,7 +145,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--quiet", action="store_true")
     add_inference_args(p, search=3, fit_color=50)
     p.set_defaults(func=cmd_distill, outputs=[("out", "dir")])
+    _add_refiner_parser(sub)
+    _add_color_step_parser(sub)
 
+
+def _add_refiner_parser(sub) -> None:
     r = sub.add_parser("refiner", help="train a learnt refinement pass on distillation targets, the encoder frozen (resumable)")
     r.add_argument("checkpoint", help="the trained model whose targets these are: run folder, .safetensors, or a shipped name")
     r.add_argument("data", help="the dataset the targets were made on")
@@ -184,7 +188,6 @@ def add_parsers(sub) -> None:
     r.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA if there is one); a run may resume on another")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refiner, outputs=[("out", "dir")])
-    _add_color_step_parser(sub)
 
 
 def _add_color_step_parser(sub) -> None:
