@@ -13,16 +13,9 @@ DATA=${DATA:-data/clevr3}
 TARGETS=${TARGETS:?name the targets folder}
 DEADLINE_S=${DEADLINE_S:-480}
 T0=$(date +%s)
-if [ -d .whl ]; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
-    export PYTHONPATH=/tmp/site:$PWD
-else
-    export PYTHONPATH=$PWD
-fi
-mkdir -p "$DATA" "$TARGETS" && cp "$PACK/meta.json" "$DATA/" && python3 scripts/pack_split.py unpack "$PACK/train" "$DATA/train" || exit 4
+mkdir -p "$TARGETS"
+. scripts/device_setup.sh || exit $?
 cp "$PACK"/*_model.* prismonet/assets/ 2>/dev/null
-nvidia-smi -L 2>/dev/null
-python3 -c "import torch, kornia, prismonet; print(torch.__version__, torch.cuda.is_available(), kornia.__version__)" || exit 5
 before=$(ls "$TARGETS"/chunk_*.safetensors 2>/dev/null | wc -l)
 for batch in 256 64; do
     left=$(( T0 + DEADLINE_S - $(date +%s) ))

@@ -11,14 +11,6 @@ DATA=${DATA:-data/furniture_tabletop}
 PACK=${PACK:-gpu_pack}
 DEADLINE_S=${DEADLINE_S:-480}
 T0=$(date +%s)
-if [ -d .whl ]; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
-    export PYTHONPATH=/tmp/site:$PWD
-else
-    export PYTHONPATH=$PWD
-fi
-mkdir -p "$DATA" && cp "$PACK/meta.json" "$DATA/" && python3 scripts/pack_split.py unpack "$PACK/train" "$DATA/train" || exit 4
-nvidia-smi -L 2>/dev/null
-python3 -c "import torch, kornia, prismonet; print(torch.__version__, torch.cuda.is_available(), kornia.__version__)" || exit 5
+. scripts/device_setup.sh || exit $?
 OUT=$OUT CONFIGS=$CONFIGS PROBE=${PROBE:-20} DEVICE=${DEVICE:-cuda} PYTHONUNBUFFERED=1 python3 scripts/side_by_side.py $(( T0 + DEADLINE_S ))
 ls -la "$OUT"

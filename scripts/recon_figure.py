@@ -32,7 +32,7 @@ def shaded_depth(depth: np.ndarray, fx: float, light=(-0.4, -0.5, -1.0)) -> np.n
     return np.where(d[..., None] > 0, np.rint(shade[..., None] * 255), 0).repeat(3, -1).astype(np.uint8)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("models", nargs="+", help="run folders or shipped names")
     ap.add_argument("--names", default=None, help="comma-separated column labels (default: the model arguments)")
@@ -42,13 +42,17 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=6)
     ap.add_argument("--limit", type=int, default=200, help="scenes searched for --category")
     ap.add_argument("--out", required=True, help="PNG path")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     names = args.names.split(",") if args.names else args.models
     if len(names) != len(args.models):
         raise SystemExit(f"--names: {len(names)} labels for {len(args.models)} models")
     if args.rows < 1:
         raise SystemExit(f"--rows must be at least 1, got {args.rows}")
-    ds = SceneDataset(args.data, split=args.split)
+    try:
+        ds = SceneDataset(args.data, split=args.split)
+        models = [load_model(m)[0].eval() for m in args.models]
+    except (OSError, ValueError) as e:  # DatasetError, CheckpointError and InputError are ValueErrors
+        raise SystemExit(f"recon_figure: {e}") from None
     cats = np.asarray(ds.arrays["obj_category"][: min(args.limit, len(ds))])
     idx = [i for i in range(len(cats)) if (cats[i] == args.category).any()][: args.rows]
     if not idx:
@@ -56,8 +60,8 @@ def main() -> None:
     b = ds.batch(idx)
     outs = []
     with torch.no_grad():
-        for m in args.models:
-            o = load_model(m)[0].eval()(b.rgb, b.K, b.T_world_cam, b.ground_z).composite
+        for m in models:
+            o = m(b.rgb, b.K, b.T_world_cam, b.ground_z).composite
             outs.append((o.image.numpy(), o.depth.numpy()))
     fx = b.K[:, 0, 0].numpy()
     rows = []

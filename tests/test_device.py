@@ -176,3 +176,13 @@ def test_the_refiner_fit_makes_no_tensor_off_the_inputs_device(scenes):
         held = _held_out_loss(model, cache, ds, targets, torch.arange(2, 4, device="cpu"), DistillWeights(background=0.0, texture=0.1))
     assert loss.device.type == "cpu" and torch.isfinite(loss) and held == held
     assert all(p.grad is not None for p in model.refiner.parameters() if p.requires_grad)
+
+
+@pytest.mark.parametrize("command", [["train", "configs/clevr3.json"], ["distill", "clevr3_fc", "DATA"],
+                                     ["refiner", "clevr3_fc", "DATA", "--targets", "t"]])
+def test_a_device_name_pytorch_does_not_know_is_one_clear_line(command, tmp_path, capsys):
+    from prismonet.cli import main
+
+    assert main([*command, "--out", str(tmp_path / "o"), "--device", "gpu"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got 'gpu'") and "Traceback" not in "".join(err)

@@ -1,6 +1,7 @@
-"""Figure helpers with exact answers: ``scripts/recon_figure.py``'s depth shading."""
+"""Figure scripts: `scripts/recon_figure.py`'s depth shading (exact answers), its figure and its one-line refusals."""
 
 import numpy as np
+import pytest
 
 
 def test_shaded_depth_of_planes(script):
@@ -16,3 +17,28 @@ def test_shaded_depth_of_planes(script):
     hole = np.full((9, 9), 4.0)
     hole[2, 2] = 0
     assert (shaded(hole, fx)[2, 2] == 0).all()
+
+
+def test_recon_figure_draws_the_shipped_scenes(script, tmp_path):
+    from prismonet.assets import shipped_samples
+    from prismonet.files import read_image
+
+    out = tmp_path / "f.png"
+    script("recon_figure").main(["shipped", "--data", str(shipped_samples()), "--split", "test", "--rows", "2", "--out", str(out)])
+    image = read_image(out)
+    assert image.shape[0] > 2 * 128 and image.shape[1] > 4 * 128  # two rows; input, depth, the model's image and depth
+
+
+@pytest.mark.parametrize("argv, says", [(["--rows", "0"], "--rows must be at least 1"),
+                                        (["--names", "a,b"], "--names: 2 labels for 1 models"),
+                                        (["--category", "7"], "has an object of category 7"),
+                                        (["--data", "/nonexistent/data"], "recon_figure: /nonexistent/data")])
+def test_recon_figure_refuses_bad_input_in_one_line(argv, says, script, tmp_path):
+    from prismonet.assets import shipped_samples
+
+    base = {"--data": str(shipped_samples()), "--split": "test", "--out": str(tmp_path / "f.png")}
+    for flag, value in zip(argv[::2], argv[1::2]):
+        base[flag] = value
+    with pytest.raises(SystemExit) as e:
+        script("recon_figure").main(["shipped", *[x for kv in base.items() for x in kv]])
+    assert says in str(e.value) and "\n" not in str(e.value)

@@ -130,5 +130,5 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         save_checkpoint(path, {k: torch.cat(v) for k, v in rows.items()}, {"first": c0})
     summary = {"scenes": count, "chunks": len(chunks)}
     if before:
-        summary.update(score_before=float(torch.cat(before).mean().cpu()), score_after=float(torch.cat(after).mean().cpu()))
+        summary.update(score_before=float(torch.cat(before).mean()), score_after=float(torch.cat(after).mean()))
     return summary

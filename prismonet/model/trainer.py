@@ -131,11 +131,7 @@ class TrainConfig:
         if self.loss.w_keep > 0 and not (self.model.refine_passes and self.model.refiner_keep and self.distill):
             raise ValueError("loss.w_keep needs a refiner that keeps or drops slots (model.refine_passes >= 1, "
                              "model.refiner_keep) and distillation targets (distill) that say which slots the fit shows")
-        if self.device != "auto":
-            try:
-                torch.device(self.device)
-            except RuntimeError:
-                raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {self.device!r}") from None
+        check_device_name(self.device)
         if self.threads < 0:
             raise ValueError(f"threads must be positive, or 0 to choose by measuring, got {self.threads}")
         if not 0 <= self.gray_share <= 1:
@@ -200,9 +196,19 @@ def _dist(backend: str = "gloo") -> tuple[int, int]:
     return (torch.distributed.get_rank() if world > 1 else 0), world
 
 
+def check_device_name(name: str) -> None:
+    """A ``ValueError`` (one line) unless ``name`` is ``auto`` or a device PyTorch knows (``cpu``, ``cuda``, ``cuda:N``)."""
+    if name != "auto":
+        try:
+            torch.device(name)
+        except RuntimeError:
+            raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}") from None
+
+
 def training_device(name: str, world: int = 1) -> torch.device:
     """The device a run trains on: ``"auto"`` is CUDA where there is one, else the CPU; under DDP on CUDA each rank
     takes the GPU of its ``LOCAL_RANK``. Asking for CUDA on a machine without it is an error, not a silent CPU run."""
+    check_device_name(name)
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)
