@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, active_rows, apply_correction, centre_pixels,
-                                     glimpse, refiner_inputs, slot_latents, slot_views, snap_shapes, with_coords)
+                                     choose_shapes, glimpse, refiner_inputs, shape_labels, slot_latents, slot_views,
+                                     snap_shapes, with_coords)
 from prismonet.render import SceneParams
 
 
@@ -115,6 +116,81 @@ def test_snap_shapes_hand_computed():
     assert new.z_sh.shape == p.z_sh.shape and p.z_sh[0, 0, 0].item() == pytest.approx(0.9)  # the input is left alone
     for name in ("z_tex", "position", "cos_sin", "scale", "active"):
         assert torch.equal(getattr(new, name), getattr(p, name))
+
+
+def test_choose_shapes_and_shape_labels_hand_computed():
+    """``choose_shapes``: the slot's own latent where logit 0 is the largest, else the code of the largest logit (the
+    first on a tie); ``shape_labels``: 0 where the target is the slot's own latent, else 1 + its nearest code."""
+    codes = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+    own = torch.tensor([[[0.2, 0.3], [0.5, 0.5], [0.0, 0.0], [9.0, 9.0]]])
+    logits = torch.tensor([[[5.0, 1.0, 2.0, 3.0], [0.0, 1.0, 4.0, 0.5], [0.0, 2.0, 0.0, 2.0], [1.0, 1.0, 0.0, 0.0]]])
+    z = choose_shapes(own, logits, codes)
+    assert torch.equal(z, torch.tensor([[[0.2, 0.3], [0.0, 1.0], [1.0, 0.0], [9.0, 9.0]]]))
+    with pytest.raises(ValueError, match="1 \\+ 3"):
+        choose_shapes(own, logits[..., :3], codes)
+    target = torch.tensor([[[0.2, 0.3], [0.0, 1.0], [-0.9, 0.2], [9.0, 9.00005]]])
+    assert shape_labels(own, target, codes).tolist() == [[0, 2, 3, 0]]
+    # a target that is a code and is also the slot's own latent counts as kept
+    assert shape_labels(codes[None, :1], codes[None, :1], codes).tolist() == [[0]]
+
+
+def test_shape_codes_refiner_chooses_and_starts_as_the_identity(shipped):
+    """A refiner with shape codes has ``1 + S`` shape logits; fresh, it keeps every slot's own shape (the identity);
+    with a code's logit raised, every slot draws that code, the pose untouched."""
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.refiner_fit import with_refiner
+
+    model, b, _ = shipped
+    ref = with_refiner(model, refiner_shape=True, refiner_shape_codes=True, refiner_keep=True).eval()
+    S = model.prior.latents.shape[0]
+    tex_end = 5 + model.cfg.tex_dim
+    assert ref.refiner.head[-1].out_features == tex_end + 1 + S + 1
+    with torch.no_grad():
+        plain = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False).latents.params
+        fresh = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params
+        assert torch.equal(fresh.z_sh, plain.z_sh) and torch.allclose(fresh.position, plain.position, atol=1e-6)
+        ref.refiner.head[-1].bias[tex_end + 1 + 5] = 10.0  # code 5
+        chosen = ref(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params
+    assert torch.equal(chosen.z_sh, model.prior.latents[5].expand_as(chosen.z_sh))
+    assert torch.allclose(chosen.position, plain.position, atol=1e-6)
+    with pytest.raises(ValueError, match="refiner_shape_codes"):
+        ModelConfig(refine_passes=1, refiner_shape_codes=True)
+
+
+def test_fit_refiner_learns_a_shape_choice(shipped, tmp_path):
+    """Targets whose shape is prior code 7 for every slot: the shape-choice refiner learns to draw code 7 (held-out
+    scenes too); its loss starts at the cross-entropy of a fresh refiner's logits."""
+    import math as _m
+
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner import OWN_SHAPE_INIT
+    from prismonet.model.refiner_fit import SHAPE_CODE_WEIGHT, RefinerFitConfig, fit_refiner, with_refiner
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.0, 0.0, 0.0], shape_step=0.0)
+    chunk = tmp_path / "t" / "chunk_00000.safetensors"
+    from prismonet.checkpoint import load_checkpoint, save_checkpoint
+
+    t, meta = load_checkpoint(chunk)
+    t["z_sh"] = model.prior.latents[7].expand_as(t["z_sh"]).clone()
+    save_checkpoint(chunk, t, meta)
+    cfg = RefinerFitConfig(steps=60, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=60)
+    torch.manual_seed(0)
+    s = fit_refiner(with_refiner(model, refiner_shape=True, refiner_shape_codes=True, refiner_keep=False), ds,
+                    tmp_path / "t", tmp_path / "codes", cfg, progress=False)
+    S = model.prior.latents.shape[0]
+    start = SHAPE_CODE_WEIGHT * (_m.log(_m.exp(OWN_SHAPE_INIT) + S))  # -log softmax of a code's logit 0
+    assert s["held_out_start"] == pytest.approx(start, rel=1e-4)
+    assert s["held_out_end"] < 0.5 * start
+    fitted = load_model(str(tmp_path / "codes"))[0]
+    assert fitted.cfg.refiner_shape_codes
+    b = ds.batch([10, 11])  # held out
+    with torch.no_grad():
+        z = fitted(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params.z_sh
+    assert torch.equal(z, model.prior.latents[7].expand_as(z))
 
 
 def test_refiner_snap_and_keep_bar_in_the_model(shipped):

@@ -64,7 +64,7 @@ def cmd_refiner(args) -> int:
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
     model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords, refiner_shape=args.shape,
-                         refiner_keep=args.keep)  # checks the refiner settings
+                         refiner_shape_codes=args.shape_codes, refiner_keep=args.keep)  # checks the refiner settings
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
     from prismonet.model.distill_fit import weights_digest
@@ -171,6 +171,9 @@ def _add_refiner_parser(sub) -> None:
     r.add_argument("--coords", action="store_true", help="the refiner also sees each pixel's image position")
     r.add_argument("--shape", action="store_true",
                    help="the refiner also corrects each slot's shape latent (fitted to targets that have shapes: --search-shapes)")
+    r.add_argument("--shape-codes", action="store_true",
+                   help="with --shape: the refiner chooses each slot's shape among the prior's codes and the slot's own "
+                        "latent (cross-entropy on the search's choice) instead of stepping the latent")
     r.add_argument("--keep", action="store_true",
                    help="the refiner also learns which slots to keep (those the search's fit shows); it drops the others")
     r.add_argument("--true-poses", action="store_true",

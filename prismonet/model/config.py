@@ -77,6 +77,11 @@ class ModelConfig:
     slot's projected centre, resampled to the image size (a zoom of 1 / ``refiner_glimpse``); 0: the whole image."""
     refiner_shape: bool = False
     """The refiner also corrects each slot's shape latent (a step added to it); else the shape is the encoder's."""
+    refiner_shape_codes: bool = False
+    """With ``refiner_shape``: instead of a step of the shape latent, the refiner chooses the slot's shape among the
+    prior's training codes or the slot's own latent (a logit each, ``refiner.choose_shapes``), fitted by cross-entropy to
+    the search's choice. Search targets are noisy labels; a regression of the latent onto them draws their mean, a blend
+    of codes, where a choice draws the most likely one (beyond the paper; EVALUATION.md, "Session 77")."""
     refiner_keep: bool = False
     """The refiner also says whether each slot is worth keeping (a logit, trained on whether the search's fit shows
     the slot); a slot it drops becomes inactive and renders nothing, so slivers and hidden slots cost nothing."""
@@ -167,6 +172,8 @@ class ModelConfig:
             raise ValueError(f"refiner_keep_logit must be a finite number, got {self.refiner_keep_logit}")
         if (self.refiner_snap_shape or self.refiner_keep_logit != 0.0) and not self.refine_passes:
             raise ValueError("refiner_snap_shape and refiner_keep_logit act in the refinement passes: they need refine_passes >= 1")
+        if self.refiner_shape_codes and not (self.refine_passes and self.refiner_shape):
+            raise ValueError("refiner_shape_codes chooses the refiner's shapes: it needs refine_passes >= 1 and refiner_shape (refiner --shape)")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):
             raise ValueError(f"refine_passes must be >= 0 and cannot be used with presence, got {self.refine_passes}")
         if not 0.0 <= self.refiner_glimpse <= 1.0:

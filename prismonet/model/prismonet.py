@@ -95,7 +95,8 @@ class PriSMONet(nn.Module):
         self.texture = TextureField(cfg.tex_dim, cfg.texture_width, cfg.texture_depth)
         if cfg.refine_passes:
             self.refiner = SlotRefiner(self.sh_dim, cfg.tex_dim, cfg.image_size, cfg.refiner_channels, cfg.refiner_fc,
-                                       cfg.refiner_coords, cfg.refiner_shape, cfg.refiner_keep)
+                                       cfg.refiner_coords, cfg.refiner_shape, cfg.refiner_keep,
+                                       prior.latents.shape[0] if cfg.refiner_shape_codes else 0)
         if cfg.color_step:
             self.color_step = ColorStep(IN_CHANNELS + (COORD_CHANNELS if cfg.refiner_coords else 0),
                                         self.sh_dim + cfg.tex_dim + 6, cfg.tex_dim, cfg.image_size,
@@ -117,6 +118,11 @@ class PriSMONet(nn.Module):
 
     def color_fn(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         return self.texture(z, x)
+
+    def shape_codes(self) -> torch.Tensor | None:
+        """The prior's training codes ``(S, D_sh)`` when the refiner chooses among them (``cfg.refiner_shape_codes``),
+        else ``None``."""
+        return self.prior.latents if self.cfg.refiner_shape_codes else None
 
     def render_settings(self) -> RenderSettings:
         return RenderSettings(samples=self.cfg.render_samples, refine_steps=self.cfg.render_refine_steps,
@@ -332,7 +338,7 @@ class PriSMONet(nn.Module):
                                T_world_cam, params.active if only is None else only)
         subject = params if only is None else replace(params, active=only)
         new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above,
-                               self.cfg.refiner_turn)
+                               self.cfg.refiner_turn, self.shape_codes())
         if self.cfg.refiner_snap_shape and not self.training:
             new = snap_shapes(new, self.prior.latents)
         if only is not None:

@@ -4,7 +4,8 @@ The recurrent encoder places each object before it sees the ones found after it,
 own render. The refiner ``g_r`` sees, per slot, the input image, what the composition of all slots
 misses of it (``I - I_comp``), the slot's visible and full silhouettes, and the slot's latents, and
 outputs a correction: a shift of the position, a turn of the yaw, a factor on the scale and a step of
-the texture latent, and with ``shape`` a step of the shape latent (else the shape is left to the encoder).
+the texture latent, and with ``shape`` a step of the shape latent (else the shape is left to the encoder), or, with
+``shape_codes``, a choice among the prior's training codes and the slot's own latent (``choose_shapes``).
 With ``keep`` it also gives a keep logit per slot, trained on whether the search's fit shows the slot: a slot it
 drops becomes inactive and renders nothing (a learnt, colour-only counterpart of ``--prune``). Its last layer starts at zero, so a
 fresh refiner changes nothing. It reads colour alone, as the encoder does.
@@ -38,14 +39,19 @@ MAX_LOG_SCALE = 0.4
 """The largest log-factor on the scale (a factor 0.67 to 1.49)."""
 KEEP_INIT = 3.0
 """A fresh refiner's keep logit (probability 0.95): it keeps every slot, so it is still the identity."""
+OWN_SHAPE_INIT = 3.0
+"""With ``shape_codes``: a fresh refiner's logit for the slot's own shape latent (the others start at 0), so that it
+keeps every slot's shape: the identity."""
 
 
 class SlotRefiner(nn.Module):
     """``(R, 8, H, W)`` slot views and ``(R, P)`` slot latents -> ``(R, 5 + D_tex)`` corrections
-    (``+ D_sh`` with ``shape``; ``+ 1``, a last keep logit, with ``keep``)."""
+    (``+ D_sh`` with ``shape``, or ``+ 1 + shape_codes`` shape logits with ``shape`` and ``shape_codes`` > 0: the slot's
+    own latent first, then each prior code; ``+ 1``, a last keep logit, with ``keep``)."""
 
     def __init__(self, sh_dim: int, tex_dim: int, image_size: int, channels: tuple[int, ...] = (32, 32, 64, 64),
-                 fc: tuple[int, ...] = (256, 256), coords: bool = False, shape: bool = False, keep: bool = False) -> None:
+                 fc: tuple[int, ...] = (256, 256), coords: bool = False, shape: bool = False, keep: bool = False,
+                 shape_codes: int = 0) -> None:
         super().__init__()
         self.tex_dim = tex_dim
         self.trunk = conv_trunk(IN_CHANNELS + (COORD_CHANNELS if coords else 0), channels)
@@ -55,10 +61,13 @@ class SlotRefiner(nn.Module):
         mlp: list[nn.Module] = []
         for a, b in zip(dims[:-1], dims[1:]):
             mlp += [nn.Linear(a, b), nn.ReLU(inplace=True)]
-        mlp.append(nn.Linear(dims[-1], 5 + tex_dim + (sh_dim if shape else 0) + (1 if keep else 0)))
+        shape_out = (1 + shape_codes if shape_codes > 0 else sh_dim) if shape else 0
+        mlp.append(nn.Linear(dims[-1], 5 + tex_dim + shape_out + (1 if keep else 0)))
         self.head = nn.Sequential(*mlp)
         self.head[-1].weight.data.zero_()  # a fresh refiner is the identity
         self.head[-1].bias.data.zero_()
+        if shape and shape_codes > 0:
+            self.head[-1].bias.data[5 + tex_dim] = OWN_SHAPE_INIT
         if keep:
             self.head[-1].bias.data[-1] = KEEP_INIT
 
@@ -172,21 +181,45 @@ def snap_shapes(params: SceneParams, codes: torch.Tensor) -> SceneParams:
     return replace(params, z_sh=codes[nearest].reshape(z.shape))
 
 
+def choose_shapes(z_sh: torch.Tensor, logits: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """``(..., D_sh)``: per slot the slot's own ``z_sh (..., D_sh)`` where the first of its ``logits (..., 1 + S)`` is the
+    largest, else the row of ``codes (S, D_sh)`` (the prior's training codes) of the largest (the first on a tie)."""
+    if logits.shape[-1] != 1 + codes.shape[0]:
+        raise ValueError(f"shape logits: expected 1 + {codes.shape[0]} (own latent + prior codes), got {logits.shape[-1]}")
+    pick = logits.argmax(-1)
+    table = codes.to(z_sh)[(pick - 1).clamp_min(0)]
+    return torch.where((pick == 0)[..., None], z_sh, table)
+
+
+def shape_labels(own: torch.Tensor, target: torch.Tensor, codes: torch.Tensor, tol: float = 1e-4) -> torch.Tensor:
+    """``(...)`` long: the class of each target shape ``target (..., D_sh)`` for a refiner with shape codes: 0 where it is
+    the slot's ``own`` latent (within ``tol``: the search kept it), else 1 + the index of the nearest of ``codes (S, D)``
+    (a search's shape trial sets a code exactly)."""
+    lead = target.shape[:-1]
+    t = target.reshape(-1, target.shape[-1])
+    nearest = torch.cdist(t, codes.to(t), compute_mode="donot_use_mm_for_euclid_dist").argmin(1).reshape(lead)
+    kept = (target - own).abs().amax(-1) <= tol
+    return torch.where(kept, torch.zeros_like(nearest), nearest + 1)
+
+
 def apply_correction(params: SceneParams, delta: torch.Tensor, pos_scale: torch.Tensor,
                      scale_range: tuple[float, float], keep: bool = False,
-                     keep_above: float | None = 0.0, turn: bool = True) -> SceneParams:
+                     keep_above: float | None = 0.0, turn: bool = True, codes: torch.Tensor | None = None) -> SceneParams:
     """``params`` moved by the refiner's raw output ``delta (B*N, 5 + D_tex [+ D_sh] [+ 1])``: position + ``pos_scale``
     times the first three, yaw turned by ``MAX_TURN tanh``, scale times ``exp(MAX_LOG_SCALE tanh)``
     (kept in ``scale_range``), texture latent plus the next ``D_tex``, and shape latent plus the next ``D_sh``
     when there are that many more. With ``keep`` the last value is a keep logit: a slot whose logit is not
     above ``keep_above`` (default 0) becomes inactive; ``keep_above=None`` drops none. With ``turn`` ``False`` the yaw
-    stays as it is. Inactive slots keep their latents."""
+    stays as it is. With ``codes (S, D_sh)`` the values after the texture's are ``1 + S`` shape logits instead of a step
+    (``choose_shapes``). Inactive slots keep their latents."""
     B, N = params.scale.shape
     delta, keep_logit = split_keep(delta, keep)
     d = delta.reshape(B, N, -1)
     tex_end = 5 + params.z_tex.shape[-1]
     z_sh = params.z_sh
-    if d.shape[-1] > tex_end:
+    if codes is not None:
+        z_sh = choose_shapes(z_sh, d[..., tex_end:], codes)
+    elif d.shape[-1] > tex_end:
         if d.shape[-1] != tex_end + z_sh.shape[-1]:
             raise ValueError(f"refiner output of {d.shape[-1]} values: expected {tex_end} or {tex_end + z_sh.shape[-1]}")
         z_sh = z_sh + d[..., tex_end:]

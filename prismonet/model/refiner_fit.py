@@ -20,17 +20,20 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
 
 from prismonet.model.distill import SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss, seen_slots
-from prismonet.model.refiner import apply_correction, split_keep
+from prismonet.model.refiner import apply_correction, shape_labels, split_keep
 
 KEEP_WEIGHT = 0.2
 """Weight of the keep logit's binary cross-entropy (a refiner with ``refiner_keep``): the target is whether the
 search's fit shows the slot (``distill.MIN_VISIBLE`` pixels or more), over every slot of a scene with targets."""
+SHAPE_CODE_WEIGHT = 0.1
+"""Weight of the shape choice's cross-entropy (a refiner with ``refiner_shape_codes``), in place of the shape latent's
+regression: the target class is the search's (``refiner.shape_labels``), over the slots the fit shows."""
 
 
 @dataclass(frozen=True)
@@ -81,8 +84,8 @@ class RefinerFitConfig:
 def with_refiner(model, passes: int = 1, **fields):
     """A copy of a trained scene model with a fresh (identity) refiner of ``passes`` passes; the
     encoder, background encoder and texture field keep their weights. ``fields``: other ``ModelConfig``
-    refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``, ``refiner_shape``, ``refiner_keep``); a
-    refiner the model already has is replaced."""
+    refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``, ``refiner_shape``,
+    ``refiner_shape_codes``, ``refiner_keep``); a refiner the model already has is replaced."""
     from prismonet.model.io import rebuilt
 
     bad = [k for k in fields if not k.startswith("refiner_")]
@@ -144,15 +147,34 @@ def color_term(color_fn, z_tex: torch.Tensor, target_z_tex: torch.Tensor, target
     return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
 
 
+def shape_choice_term(logits: torch.Tensor, own: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
+                      codes: torch.Tensor) -> torch.Tensor:
+    """``()``: the cross-entropy of the shape logits ``(B, K, 1 + S)`` against the search's choice (``shape_labels`` of
+    the targets' shapes, ``own (B, K, D_sh)`` the slots' latents before the refiner), the mean over each scene's slots
+    that the fit shows (``seen_slots``; 0 if none), then over the scenes with targets (``mask``)."""
+    labels = shape_labels(own, targets[SHAPE], codes)
+    ce = torch.nn.functional.cross_entropy(logits.flatten(0, 1), labels.flatten(), reduction="none").reshape(labels.shape)
+    shown = seen_slots(targets, ce)
+    per_scene = (ce * shown).sum(1) / shown.sum(1).clamp_min(1.0)
+    return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
+
+
 def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0) -> torch.Tensor:
     from prismonet.render import SceneParams
 
     idx = idx.to(cache["scale"].device)  # the batch, the cache and the targets go where the model is
     params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
     delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, cache, ds, idx, params)), model.cfg.refiner_keep)
-    new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)  # every slot moves: the regression sees all
+    codes = model.shape_codes()
+    new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range, codes=codes)  # every slot moves: the regression sees all
     t, have = targets.lookup(idx)
+    if codes is not None:  # the shape is a choice, fitted by its own term, not regressed
+        weights = replace(weights, shape=0.0)
     loss = distill_loss(new, t["bg_color"], t, have, weights)
+    if codes is not None:
+        tex_end = 5 + params.z_tex.shape[-1]
+        logits = delta.reshape(len(idx), params.scale.shape[1], -1)[..., tex_end:]
+        loss = loss + SHAPE_CODE_WEIGHT * shape_choice_term(logits, params.z_sh, t, have, codes)
     if color:
         loss = loss + color * color_term(model.color_fn, new.z_tex, t["z_tex"], t, have, color_points())
     if keep_logit is not None:
@@ -174,7 +196,8 @@ def refiner_record(model) -> dict:
     from prismonet.model.config import ModelConfig
 
     default = ModelConfig()
-    names = ("refiner_glimpse", "refiner_coords", "refiner_channels", "refiner_fc", "refiner_shape", "refiner_keep")
+    names = ("refiner_glimpse", "refiner_coords", "refiner_channels", "refiner_fc", "refiner_shape", "refiner_shape_codes",
+             "refiner_keep")
     return {n.removeprefix("refiner_"): getattr(model.cfg, n) for n in names if getattr(model.cfg, n) != getattr(default, n)}
 
 
