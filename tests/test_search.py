@@ -226,6 +226,35 @@ def test_shape_trials_recover_the_right_category(shipped):
     assert torch.allclose(found.composite.image, target.composite.image, atol=1e-4)
 
 
+def test_shape_w_image_judges_shapes_by_depth_alone(shipped):
+    """Input: the cylinder-coded start's colours with the cube-coded slots' depth. Judged by colour (depth weighed at
+    1e-6) the shape trials keep the cylinder; with ``shape_w_image=0`` they are judged by depth alone and every visible
+    slot takes the cube code, while the pose trials and the final score keep the colour weight. Without depth in the
+    input no shape trial can win."""
+    model, _, out = shipped
+    p, bg = out.latents.params, out.latents.bg_color
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    codes, cats = model.prior.latents, torch.as_tensor(model.prior.category_ids)
+    cylinder = codes[cats == 1][0]
+    cube = codes[cats == 2][torch.cdist(cylinder[None], codes[cats == 2]).argmin()]
+    target = _rendered_target(model, b, _with(p, z_sh=cube.expand_as(p.z_sh).clone()), bg)  # b's depth: the cubes'
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        start = render_latents(model, _with(p, z_sh=cylinder.expand_as(p.z_sh).clone()), bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    b.rgb = start.composite.image.clone()  # b's colours: the cylinders'
+    cfg = dict(scales=(), shifts=(), yaws=(), rounds=1, shape_trials=True, w_depth=1e-6)
+    by_colour = search_latents(model, start, b, SearchConfig(**cfg)).latents.params
+    assert torch.equal(by_colour.z_sh, start.latents.params.z_sh)
+    by_depth = search_latents(model, start, b, SearchConfig(shape_w_image=0.0, **cfg))
+    visible = torch.stack([(target.composite.instance == k + 1).flatten(1).any(1) for k in range(3)], 1)
+    z = by_depth.latents.params.z_sh
+    assert visible.any() and torch.allclose(z[visible], cube.expand(int(visible.sum()), -1))
+    no_depth = search_latents(model, start, b, SearchConfig(shape_w_image=0.0, **cfg), use_depth=False)
+    assert torch.equal(no_depth.latents.params.z_sh, start.latents.params.z_sh)
+    with pytest.raises(ValueError, match="shape_w_image"):
+        SearchConfig(shape_w_image=0.0)
+
+
 def _cube_target(model, out, b, factor: float, turn: float, shift: float = 0.0, farthest: bool = False):
     """The scene's slots drawn with the cube code nearest to the first cylinder code (``farthest``: the cube code
     farthest from it, which the trials do not try first), at ``factor`` x their

@@ -81,6 +81,11 @@ class SearchConfig:
     """The pass (0-based) in which the shape trials run: 0, before any pose trial; 1, after a pass of pose trials on
     the encoder's shapes (a slot then starts its shape trials nearer its object, and its footprint is measured
     there)."""
+    shape_w_image: float | None = None
+    """With ``shape_trials``: the image term's weight while the shape trials are judged (``None``: ``w_image``, as
+    every other trial). The trials keep the slot's texture latent, which the encoder fitted to its own shape, and the
+    colour fit comes after them; 0 judges shapes by depth alone (without depth in the input, no shape trial can then
+    win). The pose trials keep ``w_image``."""
     shape_nearest: int = 0
     """Also try, once per slot in the first pass, the prior's ``N`` training codes nearest to the slot's
     shape latent, whatever their category (0: none). For priors of many similar shapes (chairs), where
@@ -115,6 +120,8 @@ class SearchConfig:
             raise ValueError(f"search: shape_round must name one of the {self.rounds} passes and needs shape_trials, got {self.shape_round}")
         if self.shape_polish < 0:
             raise ValueError(f"search: shape_polish must be >= 0, got {self.shape_polish}")
+        if self.shape_w_image is not None and not (self.shape_trials and self.shape_w_image >= 0):
+            raise ValueError(f"search: shape_w_image must be >= 0 and needs shape_trials, got {self.shape_w_image}")
         if any(m <= 0 for m in self.shape_scales):
             raise ValueError(f"search: shape_scales must be positive, got {self.shape_scales}")
         if self.shape_nearest < 0:
@@ -219,6 +226,15 @@ class _Level:
         siblings tried at its pose, the winner's pose searched for ``shape_polish`` passes, and only then is the result
         judged against the slot as it was."""
         cfg = self.cfg
+        if cfg.shape_w_image is not None and cfg.shape_w_image != cfg.w_image:  # judged with the shape trials' weights
+            self.cfg = replace(cfg, w_image=cfg.shape_w_image, shape_w_image=None)
+            self.best = self.score(self.depth, self.mask, self.color)
+            try:
+                self.try_shape(state, k, starts, cos_sin, siblings)
+            finally:
+                self.cfg = cfg
+                self.best = self.score(self.depth, self.mask, self.color)
+            return
         late = bool(cfg.shape_polish or cfg.shape_siblings or cfg.shape_footprint)  # the variants' best is taken, judged at the end
         if late:
             saved = (self.depth.clone(), self.mask.clone(), self.color.clone(), self.best.clone(), state.snapshot())
