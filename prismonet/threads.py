@@ -180,3 +180,36 @@ def threads_for_load(cores: int, busy: float | None, default: int) -> int:
         return default
     free = int(cores - busy + 0.5)
     return max(1, min(default, free))
+
+
+follow_ceiling: int | None = None
+"""The thread count a command may go back up to when the load falls (torch's own, recorded by the command line when it
+took the free cores at its start); ``None``: the count is not followed (a library call, or a count set by
+``PRISMONET_THREADS`` or ``OMP_NUM_THREADS``)."""
+
+
+def follow_load(busy: Callable[[], float | None] | None = None) -> int | None:
+    """Between long units of work (a distillation chunk): take the cores other processes leave free now
+    (``threads_for_load``), up to ``follow_ceiling``, so that a command that started beside a busy process does not stay
+    on one thread for hours after it ends. Returns the new count where it changed, else ``None`` (also where it is not
+    followed). ``busy``: the load measure (``busy_cores`` by default)."""
+    import os
+    import time
+
+    import torch
+
+    if follow_ceiling is None or not hasattr(os, "sched_getaffinity"):
+        return None
+    wall, cpu = time.perf_counter(), time.process_time()
+    load = (busy or busy_cores)()
+    if load is None:
+        return None
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    if busy is None and wall > 0:  # this process's own threads (OpenMP workers still spinning after a chunk) are not others'
+        load = max(0.0, load - cpu / wall)
+    n = threads_for_load(len(os.sched_getaffinity(0)), load, follow_ceiling)
+    if n == torch.get_num_threads():
+        return None
+    torch.set_num_threads(n)
+    return n
+

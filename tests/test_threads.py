@@ -159,14 +159,59 @@ def test_command_line_run_on_a_loaded_machine_takes_one_thread(monkeypatch, caps
     calls = []
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     monkeypatch.setattr(threads, "busy_cores", lambda *a, **k: calls.append(1) or float(cores))  # every core busy
+    monkeypatch.setattr(threads, "follow_ceiling", None)  # restored after the test: main() sets it
     monkeypatch.delenv("PRISMONET_THREADS", raising=False)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     try:
         torch.set_num_threads(2)
         assert main(["data", "verify", "/nonexistent/data"]) == 2 and not calls  # argv given: untouched
+        assert threads.follow_ceiling is None
         monkeypatch.setattr(sys, "argv", ["prismonet", "data", "verify", "/nonexistent/data"])
         main()
         assert calls and torch.get_num_threads() == 1
+        assert threads.follow_ceiling == 2  # a long command may go back up to torch's own count
         assert f"other processes keep {cores:.1f} cores busy: running on 1 thread" in capsys.readouterr().err
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "sched_getaffinity") or len(__import__("os").sched_getaffinity(0)) < 2,
+                    reason="needs 2 cores this process may run on")
+def test_follow_load_takes_the_cores_the_load_frees(monkeypatch):
+    """``follow_load``: on 2 cores, a busy core gives 1 thread, a quiet machine the ceiling again; ``None`` where the
+    count did not change, and nothing at all without a ceiling (a library call, or a count set by the user)."""
+    import torch
+
+    import prismonet.threads as threads
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        monkeypatch.setattr(threads, "follow_ceiling", None)
+        assert threads.follow_load(lambda: 2.0) is None and torch.get_num_threads() == 2
+        monkeypatch.setattr(threads, "follow_ceiling", 2)
+        assert threads.follow_load(lambda: 1.0) == 1 and torch.get_num_threads() == 1
+        assert threads.follow_load(lambda: 1.0) is None  # unchanged
+        assert threads.follow_load(lambda: None) is None and torch.get_num_threads() == 1  # unmeasurable: left as is
+        assert threads.follow_load(lambda: 0.2) == 2 and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_distillation_follows_the_load_before_each_chunk(monkeypatch, tmp_path):
+    """``fit_targets`` asks ``follow_load`` before each chunk it computes, and not for a chunk that exists."""
+    import prismonet.threads as threads
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill_fit import fit_targets
+    from prismonet.model.inference import InferenceConfig
+    from prismonet.model.io import load_model
+
+    calls = []
+    monkeypatch.setattr(threads, "follow_load", lambda *a, **k: calls.append(1))
+    model = load_model("shipped")[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    fit_targets(model, ds, tmp_path / "t", 2, InferenceConfig(), batch_size=2, progress=False)
+    assert calls == [1]
+    fit_targets(model, ds, tmp_path / "t", 2, InferenceConfig(), batch_size=2, progress=False)  # resumed: nothing left
+    assert calls == [1]

@@ -15,7 +15,8 @@ the pipeline, each building its own sub-parser:
 
 Every command runs with freed memory kept for reuse (``prismonet.allocator``; ``PRISMONET_MALLOC=default`` turns it
 off). Run from the command line, every command first takes only the cores other processes leave free
-(``_set_threads``; ``PRISMONET_THREADS=N`` or ``OMP_NUM_THREADS`` choose instead). Every command reports a bad
+(``_set_threads``; ``PRISMONET_THREADS=N`` or ``OMP_NUM_THREADS`` choose instead); ``distill`` measures again before
+each chunk (``threads.follow_load``). Every command reports a bad
 input as one line, ``prismonet: error: ...``, and exit status 2: output
 paths are checked before any work (each sub-parser declares them as ``outputs``), the library's
 typed errors become that line here, and a command that fails leaves no empty output folder behind.
@@ -84,6 +85,7 @@ def _set_threads() -> None:
 
     import torch
 
+    from prismonet import threads
     from prismonet.threads import busy_cores, threads_for_load
 
     forced = os.environ.get("PRISMONET_THREADS", "").strip()
@@ -97,6 +99,7 @@ def _set_threads() -> None:
     default = torch.get_num_threads()
     if default < 2:
         return
+    threads.follow_ceiling = default  # long commands follow the load up to it (threads.follow_load)
     busy = busy_cores()  # None where it cannot be measured (no /proc/stat, or no sched_getaffinity): keep torch's count
     if busy is None:
         return

@@ -6,11 +6,13 @@ test-time steps (which import the training losses)."""
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
+from prismonet import threads
 from prismonet.model import distill
 from prismonet.model.distill import FIELDS, DistillError
 
@@ -108,6 +110,9 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
         path = out / f"chunk_{c0 // distill.CHUNK:05d}.safetensors"
         if path.is_file():
             continue
+        n = threads.follow_load()  # a run of hours takes the cores that other work frees (or leaves them to it)
+        if n is not None:
+            print(f"prismonet: the machine's load changed: running on {n} thread{'s' * (n > 1)}", file=sys.stderr)
         rows: dict[str, list[torch.Tensor]] = {k: [] for k in fields}
         for s in range(c0, min(c0 + distill.CHUNK, count), batch_size):
             b = ds.batch(list(range(s, min(s + batch_size, c0 + distill.CHUNK, count)))).to(device)
