@@ -121,6 +121,14 @@ def seen_slots(targets: dict[str, torch.Tensor], like: torch.Tensor) -> torch.Te
     return torch.ones_like(like)
 
 
+def shown_mean(per_slot: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor) -> torch.Tensor:
+    """``()``: ``per_slot (B, K)`` averaged over each scene's slots that the fit shows (``seen_slots``; 0 if none), then
+    over the scenes that have targets (``mask``; 0 when none has)."""
+    shown = seen_slots(targets, per_slot)
+    per_scene = (per_slot * shown).sum(1) / shown.sum(1).clamp_min(1.0)
+    return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
+
+
 def keep_loss(keep_logit: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor) -> torch.Tensor:
     """``()``: the binary cross-entropy of ``keep_logit (B, K)`` (a refiner's keep output) against whether the fit shows
     each slot (``seen_slots``), the mean over each scene's slots, hidden ones included, then over the scenes that have

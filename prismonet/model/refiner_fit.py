@@ -25,7 +25,8 @@ from pathlib import Path
 
 import torch
 
-from prismonet.model.distill import SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss, seen_slots
+from prismonet.model.distill import (SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss,
+                                     shown_mean)
 from prismonet.model.refiner import apply_correction, shape_labels, split_keep
 
 KEEP_WEIGHT = 0.2
@@ -141,10 +142,7 @@ def color_term(color_fn, z_tex: torch.Tensor, target_z_tex: torch.Tensor, target
     got = color_fn(z_tex[:, :, None].expand(-1, -1, len(points), -1), x)
     with torch.no_grad():
         want = color_fn(target_z_tex[:, :, None].expand(-1, -1, len(points), -1), x)
-    per_slot = ((got - want) ** 2).sum(-1).mean(-1)  # (B, K)
-    shown = seen_slots(targets, per_slot)
-    per_scene = (per_slot * shown).sum(1) / shown.sum(1).clamp_min(1.0)
-    return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
+    return shown_mean(((got - want) ** 2).sum(-1).mean(-1), targets, mask)
 
 
 def shape_choice_term(logits: torch.Tensor, own: torch.Tensor, targets: dict[str, torch.Tensor], mask: torch.Tensor,
@@ -154,9 +152,7 @@ def shape_choice_term(logits: torch.Tensor, own: torch.Tensor, targets: dict[str
     that the fit shows (``seen_slots``; 0 if none), then over the scenes with targets (``mask``)."""
     labels = shape_labels(own, targets[SHAPE], codes)
     ce = torch.nn.functional.cross_entropy(logits.flatten(0, 1), labels.flatten(), reduction="none").reshape(labels.shape)
-    shown = seen_slots(targets, ce)
-    per_scene = (ce * shown).sum(1) / shown.sum(1).clamp_min(1.0)
-    return (per_scene * mask).sum() / mask.sum().clamp_min(1.0)
+    return shown_mean(ce, targets, mask)
 
 
 def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0) -> torch.Tensor:
