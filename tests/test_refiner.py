@@ -939,3 +939,15 @@ def test_refiner_command_targets_from_another_model(shipped, tmp_path, capsys):
     capsys.readouterr()
     assert main([*args, "--out", str(tmp_path / "run"), "--targets-from", "clevr3_fc"]) == 0
     assert (tmp_path / "run" / "model.safetensors").is_file()
+
+
+def test_refiner_command_refuses_shape_codes_without_shape_in_one_line(tmp_path, capsys):
+    """``prismonet refiner --shape-codes`` without ``--shape``: one line, exit status 2, no run folder left."""
+    from prismonet.cli import main
+
+    out = tmp_path / "run"
+    assert main(["refiner", "clevr3_fc", str(tmp_path / "data"), "--targets", str(tmp_path / "t"), "--out", str(out),
+                 "--shape-codes"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("prismonet: error:") and "refiner --shape" in err[-1] and "Traceback" not in "\n".join(err)
+    assert not out.exists()
