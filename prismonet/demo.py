@@ -8,11 +8,23 @@ Markdown table of the paper's measures and ``metrics.json``.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from prismonet.files import write_atomic
+
+
+SHAPE_TRIAL_MODELS = ("shipped", "clevr3")
+"""The models whose demo search takes the shape trials unless told otherwise: the one they were measured with
+(EVALUATION.md, session 78). Other models (other counts, the tabletop and tower models share the Clevr prior) were not
+measured with them; ``--shape-trials`` turns them on there."""
+
+DEMO_BATCH = 8
+"""Scenes decoded at a time. The test-time search and colour fit run on the batch (each scene keeps its own score
+and latents), which costs less per scene than one at a time: the default 8 scenes with the shape trials in 19.0 s
+against 33.6 s one by one (BENCHMARKS.md, "Session 78: the demo decoded in batches")."""
 
 
 def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, gt_depth) -> dict:
@@ -26,11 +38,13 @@ def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, 
 
 
 def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", data: str | Path | None = None,
-             inference=None, progress: bool = True) -> dict:
+             inference=None, progress: bool = True, shape_trials: bool | None = False) -> dict:
     """Run the demo into ``out``; returns ``{"scenes": [...per-scene records], "mean": {...}}``.
 
     ``inference``: the test-time steps after the encoder (an ``InferenceConfig``; default: none, the
-    paper's feed-forward decoding)."""
+    paper's feed-forward decoding). ``shape_trials`` ``None``: the search takes the shape trials
+    (``prismonet.model.search.SHAPE_TRIAL_SETTINGS``) for the model they were measured with, the shipped 3-object one
+    (``SHAPE_TRIAL_MODELS``), with 3 or more search rounds; ``True`` / ``False``: as ``inference`` says."""
     from tqdm import tqdm
 
     from prismonet.assets import samples_for
@@ -38,36 +52,48 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
-    from prismonet.scene import LatentScene
-    from prismonet.viz.decomposition import decomposition_figure
+    from prismonet.model.search import with_shape_trials
 
     cfg = inference or InferenceConfig()
     if scenes <= 0:
         raise ValueError(f"--scenes must be positive, got {scenes}")
     out = Path(out)
     net, info = load_model(model)
+    if shape_trials is None and str(model) in SHAPE_TRIAL_MODELS and not cfg.search.shape_trials and cfg.search.rounds >= 3:
+        cfg = replace(cfg, search=with_shape_trials(cfg.search))
     ds = SceneDataset(samples_for(model) if data is None else data, split="test")
     check_compatible(net, info, ds)
     n = min(scenes, len(ds))
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
     records = []
-    for i in tqdm(range(n), desc="demo", unit="scene", disable=not progress):
-        b = ds.batch([i])
-        o = infer(net, b, cfg, loss_cfg)
-        name = f"scene_{i:03d}"
-        LatentScene.from_output(o, b, 0, fp).save(out / f"{name}.json")
-        m = scene_metrics(o.composite.instance[0].numpy(), b.instance[0].numpy(), o.composite.image[0].numpy(),
-                          b.rgb[0].numpy(), o.composite.depth[0, 0].numpy(), b.depth[0, 0].numpy())
-        title = f"{name}: AP0.5 {m['AP0.5']:.2f}, AR0.5 {m['AR0.5']:.2f}, PSNR {m['PSNR']:.1f} dB, depth RMSE {m['depth_RMSE']:.3f} ({cfg.describe()})"
-        fig = decomposition_figure(b.rgb, o, 0, out / f"{name}.png", b.depth, title=title)
-        records.append({"scene": name, "figure": str(fig), "latent_scene": str(out / f"{name}.json"), **m})
+    with tqdm(total=n, desc="demo", unit="scene", disable=not progress) as bar:
+        for s in range(0, n, DEMO_BATCH):
+            idx = list(range(s, min(s + DEMO_BATCH, n)))
+            b = ds.batch(idx)
+            o = infer(net, b, cfg, loss_cfg)
+            for j, i in enumerate(idx):
+                records.append(_scene_outputs(out / f"scene_{i:03d}", o, b, j, fp, cfg.describe()))
+            bar.update(len(idx))
     keys = [k for k in records[0] if isinstance(records[0][k], float)]
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}
     result = {"model": str(model), "inference": cfg.record(), "steps": cfg.describe(), "refine_passes": net.cfg.refine_passes,
               "scenes": records, "mean": mean}
     write_atomic(out / "metrics.json", json.dumps(result, indent=1))
     return result
+
+
+def _scene_outputs(stem: Path, o, b, j: int, fp: str, steps: str) -> dict:
+    """Scene ``j`` of the decoded batch: its latent scene (``stem.json``), its figure (``stem.png``) and its measures."""
+    from prismonet.scene import LatentScene
+    from prismonet.viz.decomposition import decomposition_figure
+
+    LatentScene.from_output(o, b, j, fp).save(stem.with_suffix(".json"))
+    m = scene_metrics(o.composite.instance[j].numpy(), b.instance[j].numpy(), o.composite.image[j].numpy(),
+                      b.rgb[j].numpy(), o.composite.depth[j, 0].numpy(), b.depth[j, 0].numpy())
+    title = f"{stem.name}: AP0.5 {m['AP0.5']:.2f}, AR0.5 {m['AR0.5']:.2f}, PSNR {m['PSNR']:.1f} dB, depth RMSE {m['depth_RMSE']:.3f} ({steps})"
+    fig = decomposition_figure(b.rgb, o, j, stem.with_suffix(".png"), b.depth, title=title)
+    return {"scene": stem.name, "figure": str(fig), "latent_scene": str(stem.with_suffix(".json")), **m}
 
 
 def format_demo_table(result: dict) -> str:

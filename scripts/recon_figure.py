@@ -1,9 +1,12 @@
-"""Several models' feed-forward reconstructions of the same scenes, one labelled figure: a row per scene; the input
-image and its depth (shaded, so that flat faces and corners show) first, then each model's rendered image and shaded
-depth. The scenes are the first ``--rows`` of the split (of the first ``--limit``) holding an object of ``--category``.
+"""Several models' reconstructions of the same scenes, one labelled figure: a row per scene; the input image and its
+depth (shaded, so that flat faces and corners show) first, then each model's rendered image and shaded depth. The scenes
+are the first ``--rows`` of the split (of the first ``--limit``) holding an object of ``--category``. Feed-forward, unless
+``--steps`` gives each column its test-time steps (the flags of ``prismonet evaluate``, one quoted string per model).
 
     python3 scripts/recon_figure.py clevr3_fit13k runs/s76/c3_fp9k_fit6000_2p --names "shipped stage 1,footprint targets" \\
         --data data/clevr3 --split val --category 2 --rows 6 --out benchmarks/cubes_s76_ff.png
+    python3 scripts/recon_figure.py shipped shipped --names "search,search with shape trials" \\
+        --steps "--search 3 --fit-color 50" "--search 3 --fit-color 50 --shape-trials" --data data/clevr3_v78 --out F.png
 """
 from __future__ import annotations
 
@@ -32,6 +35,17 @@ def shaded_depth(depth: np.ndarray, fx: float, light=(-0.4, -0.5, -1.0)) -> np.n
     return np.where(d[..., None] > 0, np.rint(shade[..., None] * 255), 0).repeat(3, -1).astype(np.uint8)
 
 
+def _steps(flags: str):
+    """An ``InferenceConfig`` from a string of ``prismonet evaluate``'s test-time flags (validated)."""
+    import shlex
+
+    from prismonet.cli.common import Parser, add_inference_args, inference_config
+
+    p = Parser(prog="recon_figure --steps")
+    add_inference_args(p)
+    return inference_config(p.parse_args(shlex.split(flags)))
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("models", nargs="+", help="run folders or shipped names")
@@ -42,15 +56,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rows", type=int, default=6)
     ap.add_argument("--limit", type=int, default=200, help="scenes searched for --category")
     ap.add_argument("--out", required=True, help="PNG path")
+    ap.add_argument("--steps", nargs="+", metavar="FLAGS",
+                    help="per model, its test-time steps as one string of prismonet evaluate's flags (default: none)")
     args = ap.parse_args(argv)
     names = args.names.split(",") if args.names else args.models
     if len(names) != len(args.models):
         raise SystemExit(f"--names: {len(names)} labels for {len(args.models)} models")
     if args.rows < 1:
         raise SystemExit(f"--rows must be at least 1, got {args.rows}")
+    if args.steps is not None and len(args.steps) != len(args.models):
+        raise SystemExit(f"--steps: {len(args.steps)} strings for {len(args.models)} models")
     try:
         ds = SceneDataset(args.data, split=args.split)
-        models = [load_model(m)[0].eval() for m in args.models]
+        models = [load_model(m) for m in args.models]
+        steps = [_steps(f) for f in args.steps] if args.steps else [None] * len(models)
     except (OSError, ValueError) as e:  # DatasetError, CheckpointError and InputError are ValueErrors
         raise SystemExit(f"recon_figure: {e}") from None
     cats = np.asarray(ds.arrays["obj_category"][: min(args.limit, len(ds))])
@@ -59,9 +78,13 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"no scene among the first {len(cats)} of {args.data} ({args.split}) has an object of category {args.category}")
     b = ds.batch(idx)
     outs = []
+    from prismonet.model.inference import infer
+    from prismonet.model.io import training_loss_config
+
     with torch.no_grad():
-        for m in models:
-            o = m(b.rgb, b.K, b.T_world_cam, b.ground_z).composite
+        for (m, info), cfg in zip(models, steps):
+            m.eval()
+            o = (m(b.rgb, b.K, b.T_world_cam, b.ground_z) if cfg is None else infer(m, b, cfg, training_loss_config(info))).composite
             outs.append((o.image.numpy(), o.depth.numpy()))
     fx = b.K[:, 0, 0].numpy()
     rows = []

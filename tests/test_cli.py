@@ -17,10 +17,36 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
     assert len(metrics["scenes"]) == 2 and 0 <= metrics["mean"]["AP0.5"] <= 1 and metrics["mean"]["PSNR"] > 10
     printed = capsys.readouterr().out
     assert "| **mean** |" in printed and str(out / "metrics.json") in printed
-    assert "encoder, then 3 pose-search rounds, 50 colour-fit steps" in printed
+    assert "encoder, then 3 pose-search rounds, every code of each category tried at the slot's footprint, 50 colour-fit steps" in printed
     assert main(["demo", "--out", str(out), "--scenes", "1", "--quiet"]) == 0  # re-runnable over its own output
     metrics = json.loads((out / "metrics.json").read_text())
-    assert (metrics["inference"]["search"]["rounds"], metrics["inference"]["color_fit"]["steps"]) == (3, 50)
+    search = metrics["inference"]["search"]
+    assert (search["rounds"], search["shape_trials"], search["shape_footprint"], metrics["inference"]["color_fit"]["steps"]) == (3, True, True, 50)
+
+
+def test_demo_shape_trials_by_the_model_unless_told(tmp_path, capsys):
+    """The demo's search takes the shape trials for the shipped 3-object model (where they were measured), not for another
+    model (the cars'; `clevr2`, whose prior is the same), and never with ``--no-shape-trials``; each figure and latent
+    scene is written."""
+    import json
+
+    from prismonet.demo import run_demo
+    from prismonet.model.inference import InferenceConfig
+
+    out = tmp_path / "off"
+    assert main(["demo", "--out", str(out), "--scenes", "1", "--fit-color", "0", "--no-shape-trials", "--quiet"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["inference"]["search"]["shape_trials"] is False
+    assert "every code" not in capsys.readouterr().out
+    cars = run_demo(tmp_path / "cars", 1, "cars", inference=InferenceConfig.of(search=3), progress=False, shape_trials=None)
+    assert cars["inference"]["search"]["shape_trials"] is False and "every code" not in cars["steps"]
+    assert (tmp_path / "cars" / "scene_000.png").is_file() and (tmp_path / "cars" / "scene_000.json").is_file()
+    two_obj = run_demo(tmp_path / "c2", 1, "clevr2", inference=InferenceConfig.of(search=3), progress=False, shape_trials=None)
+    assert two_obj["inference"]["search"]["shape_trials"] is False
+    told = run_demo(tmp_path / "c2t", 1, "clevr2", inference=InferenceConfig.of(search=3, shape_trials=True), progress=False)
+    assert told["inference"]["search"]["shape_trials"] is True
+    two = run_demo(tmp_path / "two", 2, inference=InferenceConfig.of(search=0), progress=False, shape_trials=None)
+    assert two["steps"] == "encoder only, as the paper"  # no search: nothing to add the trials to
+    assert [r["scene"] for r in two["scenes"]] == ["scene_000", "scene_001"]
 
 
 def test_demo_feed_forward_as_the_paper(tmp_path, capsys):

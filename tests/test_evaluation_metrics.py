@@ -181,3 +181,55 @@ def test_recurrent_step_metrics_hand_computed():
     assert [s["visible"] for s in steps] == [0.5, 1.0, 0.5]
     assert [s["precision"] for s in steps] == [1.0, 0.5, 1.0]
     assert math.isnan(recurrent_step_metrics(np.zeros((1, 32, 32), np.int64), gt[:1], 1)[0]["precision"])
+
+
+def test_category_shares_hand_computed():
+    from prismonet.evaluation.metrics import category_shares
+
+    names = ("sphere", "cylinder", "cube")
+    # 3 spheres (2 drawn as spheres), 1 cylinder drawn as a cube, no cube at all
+    r = category_shares(np.array([0, 0, 0, 1]), np.array([0, 2, 0, 2]), names)
+    assert r["sphere"] == pytest.approx(2 / 3) and r["cylinder"] == 0.0 and math.isnan(r["cube"])
+    assert r["objects"] == {"sphere": 3, "cylinder": 1, "cube": 0}
+    assert r["mean"] == pytest.approx((2 / 3 + 0.0) / 2)  # categories without objects do not count
+    assert math.isnan(category_shares(np.zeros(0), np.zeros(0), names)["mean"])
+    with pytest.raises(ValueError, match="true categories"):
+        category_shares(np.array([0, 1]), np.array([0]), names)
+
+
+def test_clevr_code_categories_of_the_shipped_priors():
+    from prismonet.evaluation.evaluate import clevr_code_categories
+    from prismonet.shapes.prior import load_prior
+
+    cats = clevr_code_categories(load_prior("shipped"))
+    assert cats is not None and cats.tolist() == [0] * 9 + [1] * 9 + [2] * 9  # sphere_0..8, cylinder_0..8, cube_0..8
+    assert clevr_code_categories(load_prior("cars")) is None  # not Clevr shapes: no category measure
+
+
+def test_evaluate_reports_the_shape_category_shares():
+    """On Clevr scenes with the Clevr prior the shares are those of each matched slot's nearest code, recomputed here."""
+    import torch
+
+    from prismonet.assets import asset_path
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import evaluate_model
+    from prismonet.model.io import load_model
+
+    model, _ = load_model("shipped")
+    ds = SceneDataset(asset_path("samples/clevr3"), split="test")
+    r = evaluate_model(model, ds, batch_size=16, progress=False)
+    sc = r["shape_category"]
+    assert sum(sc["objects"].values()) == r["matched_objects"] > 0
+    b = ds.batch(list(range(len(ds))))
+    with torch.no_grad():
+        out = model.eval()(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    near = torch.cdist(out.latents.params.z_sh, model.prior.latents.detach()[None]).argmin(-1)
+    right = {0: [], 1: [], 2: []}
+    for j in range(len(b)):
+        for pk, gk in scene_detection(out.composite.instance[j].numpy(), b.instance[j].numpy(), 0.5)["pairs"]:
+            true = int(b.obj_shape[j, gk - 1]) // 9  # Clevr shape ids: 9 per category, spheres first
+            right[true].append(int(model.prior.category_ids[int(near[j, pk - 1])]) == true)
+    for c, name in enumerate(("sphere", "cylinder", "cube")):
+        assert sc["objects"][name] == len(right[c])
+        if right[c]:
+            assert sc[name] == pytest.approx(np.mean(right[c]))

@@ -32,7 +32,8 @@ def test_recon_figure_draws_the_shipped_scenes(script, tmp_path):
 @pytest.mark.parametrize("argv, says", [(["--rows", "0"], "--rows must be at least 1"),
                                         (["--names", "a,b"], "--names: 2 labels for 1 models"),
                                         (["--category", "7"], "has an object of category 7"),
-                                        (["--data", "/nonexistent/data"], "recon_figure: /nonexistent/data")])
+                                        (["--data", "/nonexistent/data"], "recon_figure: /nonexistent/data"),
+                                        (["--steps", "--search 2 --shape-trials"], "need --search 3 or more, got 2")])
 def test_recon_figure_refuses_bad_input_in_one_line(argv, says, script, tmp_path):
     from prismonet.assets import shipped_samples
 
@@ -42,3 +43,20 @@ def test_recon_figure_refuses_bad_input_in_one_line(argv, says, script, tmp_path
     with pytest.raises(SystemExit) as e:
         script("recon_figure").main(["shipped", *[x for kv in base.items() for x in kv]])
     assert says in str(e.value) and "\n" not in str(e.value)
+
+
+def test_recon_figure_takes_test_time_steps_per_model(script, tmp_path):
+    """``--steps`` gives each column its own test-time steps (a pose search changes that column's reconstruction, not the
+    figure's layout); one string per model."""
+    from prismonet.assets import shipped_samples
+    from prismonet.files import read_image
+
+    base = ["shipped", "shipped", "--data", str(shipped_samples()), "--split", "test", "--rows", "1"]
+    script("recon_figure").main([*base, "--out", str(tmp_path / "a.png"), "--steps", "", "--search 1"])
+    script("recon_figure").main([*base, "--out", str(tmp_path / "c.png"), "--steps", "", ""])
+    image, plain = read_image(tmp_path / "a.png"), read_image(tmp_path / "c.png")
+    assert image.shape == plain.shape and image.shape[1] > 6 * 128  # input, depth, then two models' image and depth
+    assert (image != plain).any()
+    with pytest.raises(SystemExit) as e:
+        script("recon_figure").main([*base, "--out", str(tmp_path / "b.png"), "--steps", "--fit-color 5"])
+    assert "--steps: 1 strings for 2 models" in str(e.value)

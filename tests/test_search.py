@@ -516,3 +516,25 @@ def test_pose_shape_truth_refuses_bad_counts_in_one_line(argv, says, capsys, scr
     assert script("pose_shape_truth").main(["shipped", str(shipped_samples()), "--split", "test", *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0], err
+
+
+def test_shape_trials_flag_is_the_measured_setting(capsys):
+    """``--shape-trials`` sets ``SHAPE_TRIAL_SETTINGS`` on the search (``--search-set`` still applies after it); with fewer
+    than 3 search rounds it is refused in one line, exit 2, before any work."""
+    from prismonet.cli import main
+    from prismonet.model.search import SHAPE_TRIAL_SETTINGS
+
+    cfg = InferenceConfig.of(search=3, shape_trials=True).search
+    assert {k: getattr(cfg, k) for k in SHAPE_TRIAL_SETTINGS} == SHAPE_TRIAL_SETTINGS
+    assert (cfg.shape_trials, cfg.shape_footprint, cfg.shape_round, cfg.w_depth) == (True, True, 2, 0.5)
+    assert cfg.scales == SearchConfig().scales and cfg.w_image == SearchConfig().w_image  # nothing else moves
+    assert InferenceConfig.of(search=3).search == SearchConfig(rounds=3)  # off by default
+    assert InferenceConfig.of(search=4, shape_trials=True, search_set=["shape_polish=1"]).search.shape_polish == 1
+    assert "every code of each category tried at the slot's footprint" in InferenceConfig.of(search=3, shape_trials=True).describe()
+    for rounds in (0, 2):
+        with pytest.raises(ValueError, match="need --search 3 or more"):
+            InferenceConfig.of(search=rounds, shape_trials=True)
+        assert main(["evaluate", "shipped", str(shipped_samples()), "--limit", "1", "--search", str(rounds), "--shape-trials",
+                     "--fit-color", "0", "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"need --search 3 or more, got {rounds}" in err[0], err

@@ -16,8 +16,10 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"prismonet: error: {where + ': ' if where else ''}{message}\n")
 
 
-def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: int = 0, depth: bool = True) -> None:
-    """The flags of ``prismonet.model.inference.InferenceConfig``, with this command's defaults.
+def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: int = 0, depth: bool = True,
+                       shape_trials: bool = False) -> None:
+    """The flags of ``prismonet.model.inference.InferenceConfig``, with this command's defaults (``shape_trials`` ``None``:
+    the command decides by the model, as ``prismonet.demo.run_demo`` does).
 
     ``depth``: whether the command's input can have depth (then ``--color-only`` is offered)."""
     g = p.add_argument_group("test-time steps after the encoder (beyond the paper; all 0: its feed-forward decoding)")
@@ -46,6 +48,11 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                         "(the result is rendered with the MLP; default 0: the MLP throughout)")
     g.add_argument("--search-shapes", type=int, default=0, metavar="N",
                    help="in the search's first round, also try each slot's N nearest training shapes of the prior (default 0)")
+    by_default = ("on for the shipped 3-object model, where it was measured, else off" if shape_trials is None
+                  else "on" if shape_trials else "off")
+    g.add_argument("--shape-trials", action=argparse.BooleanOptionalAction, default=shape_trials,
+                   help="with --search 3 or more: in the third pass try every shape of the prior at each slot's footprint "
+                        f"(draws cubes as cubes; about 4x the search's time; default: {by_default})")
     g.add_argument("--search-set", action="append", default=[], metavar="FIELD=VALUE",
                    help="any other setting of the search (SearchConfig), as JSON, e.g. shape_trials=true or "
                         "shape_yaws=[30,60] (repeatable; applied after the flags above)")
@@ -77,7 +84,8 @@ def inference_config(args, has_depth: bool = True):
                               search_grid=getattr(args, "search_grid", 0),
                               search_shapes=getattr(args, "search_shapes", 0),
                               reseed=getattr(args, "reseed", 0), reseed_cycles=getattr(args, "reseed_cycles", 1),
-                              reseed_grow=getattr(args, "reseed_grow", 0), search_set=getattr(args, "search_set", None))
+                              reseed_grow=getattr(args, "reseed_grow", 0), search_set=getattr(args, "search_set", None),
+                              shape_trials=bool(getattr(args, "shape_trials", False)))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

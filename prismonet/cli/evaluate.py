@@ -16,11 +16,11 @@ def cmd_demo(args) -> int:
 
     t0 = time.perf_counter()
     cfg = inference_config(args)
-    result = run_demo(args.out, args.scenes, args.model, args.data, cfg, progress=not args.quiet)
+    result = run_demo(args.out, args.scenes, args.model, args.data, cfg, progress=not args.quiet, shape_trials=args.shape_trials)
     print(format_demo_table(result))
     out = Path(args.out)
     print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "
-          f"in {time.perf_counter() - t0:.1f} s ({cfg.describe()}{refined_note(result['refine_passes'])})")
+          f"in {time.perf_counter() - t0:.1f} s ({result['steps']}{refined_note(result['refine_passes'])})")
     print(f"figures:       {out}/scene_*.png  (input | reconstruction | depth target | depth | instances; each object alone)")
     print(f"latent scenes: {out}/scene_*.json  (prismonet export / edit / views take these)")
     print(f"metrics:       {out / 'metrics.json'}")
@@ -68,6 +68,10 @@ def cmd_evaluate(args) -> int:
     miss = results["misses"]
     print(f"of {miss['objects']} visible objects: found {miss['found']:.3f}; missed as " +
           ", ".join(f"{k} {miss[k]:.3f}" for k in MISS_KINDS) + " (prismonet.evaluation.metrics.miss_breakdown)")
+    if "shape_category" in results:
+        sc = results["shape_category"]
+        print("matched objects drawn nearest a prior code of their own category: " +
+              ", ".join(f"{k} {sc[k]:.3f} ({n})" for k, n in sc["objects"].items()) + f"; mean {sc['mean']:.3f}")
     print("\nper encoder step:\n" + format_steps(results))
     if len(results["by_count"]) > 1:
         print("\nper number of visible objects:\n" + format_counts(results))
@@ -142,7 +146,7 @@ def add_parsers(sub) -> None:
     demo.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
     demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes (default: those of --model's setting)")
     demo.add_argument("--quiet", action="store_true")
-    add_inference_args(demo, search=3, fit_color=50)
+    add_inference_args(demo, search=3, fit_color=50, shape_trials=None)
     demo.set_defaults(func=cmd_demo, outputs=[("out", "dir")])
 
     _add_evaluate(sub)

@@ -10,6 +10,7 @@ import torch
 from prismonet.evaluation.metrics import (
     angle_error,
     ari_metrics,
+    category_shares,
     clip_breakdown,
     count_breakdown,
     count_metrics,
@@ -133,6 +134,19 @@ def shape_periods(ds, specs, clevr_ids: bool) -> list[float] | None:
     return library_yaw_periods(cfg["shapes"], cfg.get("shape_split", "seen"))
 
 
+def clevr_code_categories(prior) -> torch.Tensor | None:
+    """Each prior code's Clevr category id (``prismonet.shapes.clevr_set.CATEGORIES``), or ``None`` when the prior's
+    codes are not Clevr shapes (read from its shape names, ``sphere_3`` and so on)."""
+    from prismonet.shapes.clevr_set import CATEGORIES
+
+    names, ids = list(getattr(prior, "shape_names", [])), [int(i) for i in getattr(prior, "category_ids", [])]
+    if not names or len(names) != len(ids) or not all(0 <= i < len(CATEGORIES) for i in ids):
+        return None
+    if any(name.rsplit("_", 1)[0] != CATEGORIES[i] for name, i in zip(names, ids)):
+        return None
+    return torch.tensor(ids)
+
+
 @torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
                    inference=None, loss_cfg=None, supersample: int = 1) -> dict:
@@ -161,11 +175,14 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     N = num_slots or model.cfg.num_slots
     step_inst, pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d, empty_d = [], [], [], [], [], [], [], []
     pos_err, rot_err, rot_sym, rot_shape, pair_step, scale_ratio, height_err, raised = [], [], [], [], [], [], [], []
+    true_cat, drawn_cat = [], []  # Clevr data and a Clevr prior: each matched object's category, and its slot's nearest code's
     model.eval()
     seconds, decoded, aa_seconds = 0.0, 0.0, 0.0
     specs, clevr_ids = dataset_shapes(ds)
     pseudo = None if clevr_ids else setting_symmetry(ds)
     periods = shape_periods(ds, specs, clevr_ids)
+    code_cat = clevr_code_categories(model.prior) if clevr_ids else None
+    codes = model.prior.latents.detach().cpu() if code_cat is not None else None
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
@@ -194,6 +211,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         p = out.latents.params
         decoded += float(p.active.sum()) if p.active is not None else float(p.scale.numel())
         yaw = torch.atan2(p.cos_sin[..., 1], p.cos_sin[..., 0])
+        near = None if codes is None else torch.cdist(p.z_sh.detach().cpu().to(codes.dtype), codes[None]).argmin(-1)  # (B, N)
         for j in range(len(b)):
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
                 pos_err.append(float((p.position[j, pk - 1] - b.obj_position[j, gk - 1]).norm()))
@@ -208,6 +226,9 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
                 rot_sym.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, own if clevr_ids else pseudo))
                 if own:  # None: not known; 0: a round shape, which has no yaw
                     rot_shape.append(angle_error(float(yaw[j, pk - 1]), gt_yaw, own))
+                if near is not None and 0 <= sid < len(specs):
+                    true_cat.append(specs[sid].category_id)
+                    drawn_cat.append(int(code_cat[int(near[j, pk - 1])]))
     cat = np.concatenate
     results = {"scenes": n, "num_slots": N, "extra_slots": cfg.extra_slots, "inference": cfg.record(), "supersample": supersample}
     results.update(detection_metrics(cat(pred_inst), cat(gt_inst)))
@@ -225,6 +246,10 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["rot_err_shape"] = float(np.median(rot_shape)) if rot_shape else math.nan  # up to each shape's own symmetry
     results["matched_not_round"] = len(rot_shape)
     results["matched_objects"] = len(pos_err)
+    if code_cat is not None:  # drawn as its own kind: the slot's shape latent nearest a code of the object's category
+        from prismonet.shapes.clevr_set import CATEGORIES
+
+        results["shape_category"] = category_shares(np.asarray(true_cat, np.int64), np.asarray(drawn_cat, np.int64), CATEGORIES)
     h, up = np.asarray(height_err), np.asarray(raised, dtype=bool)
     results["height_err"] = float(h.mean()) if h.size else math.nan
     results["height_err_raised"] = float(h[up].mean()) if up.any() else math.nan

@@ -249,6 +249,29 @@ def angle_error(pred: float, gt: float, period: float | None) -> float:
     return math.degrees(min(d, period - d))
 
 
+def category_shares(true_cat: np.ndarray, drawn_cat: np.ndarray, names: tuple[str, ...]) -> dict:
+    """How often a matched object is drawn as its own kind: per category of ``names``, the share of matched objects of
+    that true category (``true_cat``, ints) whose slot's shape latent lies nearest a prior code of the same category
+    (``drawn_cat``); NaN for a category with no matched object. ``"mean"`` averages the categories that have one (each
+    category weighs the same, as the sphere / cylinder / cube columns of EVALUATION.md do); ``"objects"`` counts each.
+
+    Example:
+        >>> category_shares(np.array([0, 0, 2, 2]), np.array([0, 1, 2, 2]), ("sphere", "cylinder", "cube"))["mean"]
+        0.75
+    """
+    true_cat, drawn_cat = np.asarray(true_cat, np.int64), np.asarray(drawn_cat, np.int64)
+    if true_cat.shape != drawn_cat.shape:
+        raise ValueError(f"category_shares: {true_cat.shape} true categories against {drawn_cat.shape} drawn ones")
+    out: dict = {"objects": {}}
+    for c, name in enumerate(names):
+        sel = true_cat == c
+        out[name] = float((drawn_cat[sel] == c).mean()) if sel.any() else math.nan
+        out["objects"][name] = int(sel.sum())
+    shares = [out[n] for n in names if out["objects"][n]]
+    out["mean"] = float(np.mean(shares)) if shares else math.nan
+    return out
+
+
 SETTING_SYMMETRY = {"cars": math.pi, "chairs": math.pi / 2}
 """Pseudo-symmetry about the vertical axis of the ShapeNet-style settings, for the rotation error "up to
 symmetry": the paper's bracketed figures (a car looks alike turned by 180 degrees, an armchair by 90)."""

@@ -35,7 +35,7 @@ from prismonet.model.prismonet import ModelOutput
 from prismonet.model.prune import PRUNE_RULE, prune
 from prismonet.model.refine import RefineConfig, refine
 from prismonet.model.reseed import ReseedConfig, reseed
-from prismonet.model.search import SearchConfig, search_latents
+from prismonet.model.search import SearchConfig, search_latents, with_shape_trials
 from prismonet.model.select import check_extra_slots, decode_overcomplete
 from prismonet.model.stopping import StopRule
 
@@ -70,13 +70,16 @@ class InferenceConfig:
            prune: bool = False, search_scales: tuple[float, ...] | None = None,
            search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0,
            search_shapes: int = 0, reseed: int = 0, reseed_cycles: int = 1, reseed_grow: int = 0,
-           search_set: list[str] | None = None) -> "InferenceConfig":
-        """From step counts, with every other setting at its measured default (validates each). ``search_set``: more
-        ``FIELD=VALUE`` settings of the search (``SearchConfig``, values as JSON), applied last."""
+           search_set: list[str] | None = None, shape_trials: bool = False) -> "InferenceConfig":
+        """From step counts, with every other setting at its measured default (validates each). ``shape_trials``: the
+        search takes ``SHAPE_TRIAL_SETTINGS`` (``search`` must be 3 or more). ``search_set``: more ``FIELD=VALUE``
+        settings of the search (``SearchConfig``, values as JSON), applied last."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         scales = {} if search_scales is None else {"scales": tuple(search_scales)}
         search_cfg = SearchConfig(rounds=search, far_clip=search_far_clip, coarse_rounds=search_coarse, grid=search_grid,
                                   shape_nearest=search_shapes, **scales)
+        if shape_trials:
+            search_cfg = with_shape_trials(search_cfg)
         if search_set:
             from prismonet.config import ConfigError, load_config, to_dict
 

@@ -134,6 +134,20 @@ class SearchConfig:
         return len([s for s in self.scales if s != 1]) + 2 * len([d for d in self.shifts if d != 0]) + len([a for a in self.yaws if a != 0])
 
 
+SHAPE_TRIAL_SETTINGS: dict = {"shape_trials": True, "shape_footprint": True, "shape_yaws": (30.0, 60.0), "shape_polish": 3,
+                              "shape_round": 2, "w_depth": 0.5}
+"""The measured shape-trial search (``--shape-trials``; EVALUATION.md, sessions 75-78, "sharp shapes"): in the third
+pass every prior code of each category is tried at each slot's footprint, turned by 0, 30 and 60 degrees, the best
+variant's pose searched for 3 passes before it is judged against the slot as it was; depth weighs 0.5 in the score."""
+
+
+def with_shape_trials(cfg: SearchConfig) -> SearchConfig:
+    """``cfg`` with ``SHAPE_TRIAL_SETTINGS``; the trials run in pass 3, so ``cfg.rounds`` must be 3 or more."""
+    if cfg.rounds <= SHAPE_TRIAL_SETTINGS["shape_round"]:
+        raise ValueError(f"shape trials run in the search's third pass, so they need --search 3 or more, got {cfg.rounds}")
+    return replace(cfg, **SHAPE_TRIAL_SETTINGS)
+
+
 def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch.Tensor, cos_sin: torch.Tensor):
     """``(scale (B,), position (B, 3), cos_sin (B, 2))`` of each trial for one slot, with steps
     multiplied by ``step``."""
