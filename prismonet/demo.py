@@ -66,18 +66,18 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     n = min(scenes, len(ds))
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
-    records = []
+    records, steps = [], cfg.describe()
     with tqdm(total=n, desc="demo", unit="scene", disable=not progress) as bar:
         for s in range(0, n, DEMO_BATCH):
             idx = list(range(s, min(s + DEMO_BATCH, n)))
             b = ds.batch(idx)
             o = infer(net, b, cfg, loss_cfg)
             for j, i in enumerate(idx):
-                records.append(_scene_outputs(out / f"scene_{i:03d}", o, b, j, fp, cfg.describe()))
+                records.append(_scene_outputs(out / f"scene_{i:03d}", o, b, j, fp, steps))
             bar.update(len(idx))
     keys = [k for k in records[0] if isinstance(records[0][k], float)]
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}
-    result = {"model": str(model), "inference": cfg.record(), "steps": cfg.describe(), "refine_passes": net.cfg.refine_passes,
+    result = {"model": str(model), "inference": cfg.record(), "steps": steps, "refine_passes": net.cfg.refine_passes,
               "scenes": records, "mean": mean}
     write_atomic(out / "metrics.json", json.dumps(result, indent=1))
     return result

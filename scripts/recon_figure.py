@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from prismonet.data.dataset import SceneDataset
-from prismonet.model.io import load_model
+from prismonet.model.inference import infer
+from prismonet.model.io import load_model, training_loss_config
 from prismonet.viz.decomposition import labelled_panel
 from prismonet.viz.mask_comparison import PANEL, chw_to_u8, panel_grid
 
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         ds = SceneDataset(args.data, split=args.split)
         models = [load_model(m) for m in args.models]
-        steps = [_steps(f) for f in args.steps] if args.steps else [None] * len(models)
+        steps = [_steps(f) for f in (args.steps or [""] * len(models))]  # "": feed-forward, as `evaluate` decodes it
     except (OSError, ValueError) as e:  # DatasetError, CheckpointError and InputError are ValueErrors
         raise SystemExit(f"recon_figure: {e}") from None
     cats = np.asarray(ds.arrays["obj_category"][: min(args.limit, len(ds))])
@@ -78,13 +79,9 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"no scene among the first {len(cats)} of {args.data} ({args.split}) has an object of category {args.category}")
     b = ds.batch(idx)
     outs = []
-    from prismonet.model.inference import infer
-    from prismonet.model.io import training_loss_config
-
     with torch.no_grad():
         for (m, info), cfg in zip(models, steps):
-            m.eval()
-            o = (m(b.rgb, b.K, b.T_world_cam, b.ground_z) if cfg is None else infer(m, b, cfg, training_loss_config(info))).composite
+            o = infer(m.eval(), b, cfg, training_loss_config(info)).composite
             outs.append((o.image.numpy(), o.depth.numpy()))
     fx = b.K[:, 0, 0].numpy()
     rows = []
