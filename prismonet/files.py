@@ -174,15 +174,15 @@ def arg_float(lo: float | None = None, hi: float | None = None, positive: bool =
 
 def write_image(path, image: np.ndarray) -> Path:
     """Write an image (OpenCV's BGR order) by encoding it in memory and writing the bytes from
-    Python, so a file name that is not valid UTF-8 never reaches OpenCV; one line on failure."""
+    Python, so a file name that is not valid UTF-8 never reaches OpenCV; one line on failure. The bytes go
+    through ``write_atomic``: an interrupted write leaves the old file or none, never a truncated image."""
     import cv2
 
     p = Path(path)
     ok, buf = cv2.imencode(p.suffix or ".png", np.ascontiguousarray(image)) if p.suffix else (False, None)
     if not ok:
         raise InputError(f"{shown(p)}: OpenCV cannot write images of type {p.suffix or '(no extension)'!r}")
-    p.write_bytes(buf.tobytes())
-    return p
+    return write_atomic(p, buf.tobytes())
 
 
 def write_atomic(path, data: bytes | str) -> Path:

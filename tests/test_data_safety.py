@@ -85,3 +85,26 @@ def test_write_atomic_never_leaves_a_half_written_file(tmp_path, monkeypatch):
         write_atomic(target, '{"new": 2}')
     assert target.read_text() == '{"old": 1}'  # the old file stands, and no temporary is left
     assert sorted(p.name for p in tmp_path.iterdir()) == ["models.json"]
+
+
+def test_write_image_never_leaves_a_half_written_image(tmp_path, monkeypatch):
+    import os
+
+    import numpy as np
+    import pytest
+
+    from prismonet.files import read_image, write_image
+
+    target = tmp_path / "scene_000.png"
+    old = np.full((4, 5, 3), 7, np.uint8)
+    write_image(target, old)
+    assert (read_image(target) == old).all() and sorted(p.name for p in tmp_path.iterdir()) == ["scene_000.png"]
+
+    def interrupted(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_image(target, np.zeros((4, 5, 3), np.uint8))
+    assert (read_image(target) == old).all()  # the old image stands, and no temporary is left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene_000.png"]
