@@ -25,9 +25,9 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
 
 
 def test_demo_shape_trials_by_the_model_unless_told(tmp_path, capsys):
-    """The demo's search takes the shape trials for the shipped 3-object model (where they were measured), not for another
-    model (the cars'; `clevr2`, whose prior is the same), and never with ``--no-shape-trials``; each figure and latent
-    scene is written."""
+    """The demo's search takes the shape trials for the Clevr models of a fixed count (where they were measured: the shipped
+    3-object model, `clevr2`), not for another model (the cars'; the block towers', whose prior is the same), and never
+    with ``--no-shape-trials``; each figure and latent scene is written."""
     import json
 
     from prismonet.demo import run_demo
@@ -41,8 +41,10 @@ def test_demo_shape_trials_by_the_model_unless_told(tmp_path, capsys):
     assert cars["inference"]["search"]["shape_trials"] is False and "every code" not in cars["steps"]
     assert (tmp_path / "cars" / "scene_000.png").is_file() and (tmp_path / "cars" / "scene_000.json").is_file()
     two_obj = run_demo(tmp_path / "c2", 1, "clevr2", inference=InferenceConfig.of(search=3), progress=False, shape_trials=None)
-    assert two_obj["inference"]["search"]["shape_trials"] is False
-    told = run_demo(tmp_path / "c2t", 1, "clevr2", inference=InferenceConfig.of(search=3, shape_trials=True), progress=False)
+    assert two_obj["inference"]["search"]["shape_trials"] is True
+    towers = run_demo(tmp_path / "tw", 1, "blocktowers", inference=InferenceConfig.of(search=3), progress=False, shape_trials=None)
+    assert towers["inference"]["search"]["shape_trials"] is False
+    told = run_demo(tmp_path / "twt", 1, "blocktowers", inference=InferenceConfig.of(search=3, shape_trials=True), progress=False)
     assert told["inference"]["search"]["shape_trials"] is True
     two = run_demo(tmp_path / "two", 2, inference=InferenceConfig.of(search=0), progress=False, shape_trials=None)
     assert two["steps"] == "encoder only, as the paper"  # no search: nothing to add the trials to

@@ -48,7 +48,7 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                         "(the result is rendered with the MLP; default 0: the MLP throughout)")
     g.add_argument("--search-shapes", type=int, default=0, metavar="N",
                    help="in the search's first round, also try each slot's N nearest training shapes of the prior (default 0)")
-    by_default = ("on for the shipped 3-object model, where it was measured, else off" if shape_trials is None
+    by_default = ("on for the Clevr models of 2-5 objects, where it was measured, else off" if shape_trials is None
                   else "on" if shape_trials else "off")
     g.add_argument("--shape-trials", action=argparse.BooleanOptionalAction, default=shape_trials,
                    help="with --search 3 or more: in the third pass try every shape of the prior at each slot's footprint "
