@@ -44,7 +44,7 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
 
     ``inference``: the test-time steps after the encoder (an ``InferenceConfig``; default: none, the
     paper's feed-forward decoding). ``shape_trials`` ``None``: the search takes the shape trials
-    (``prismonet.model.search.SHAPE_TRIAL_SETTINGS``) for the model they were measured with, the shipped 3-object one
+    (``prismonet.model.search.SHAPE_TRIAL_SETTINGS``) for the models they were measured to pay for
     (``SHAPE_TRIAL_MODELS``), with 3 or more search rounds; ``True`` / ``False``: as ``inference`` says."""
     from tqdm import tqdm
 

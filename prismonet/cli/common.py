@@ -17,7 +17,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: int = 0, depth: bool = True,
-                       shape_trials: bool = False) -> None:
+                       shape_trials: bool | None = False) -> None:
     """The flags of ``prismonet.model.inference.InferenceConfig``, with this command's defaults (``shape_trials`` ``None``:
     the command decides by the model, as ``prismonet.demo.run_demo`` does).
 
