@@ -213,3 +213,42 @@ def follow_load(busy: Callable[[], float | None] | None = None) -> int | None:
     torch.set_num_threads(n)
     return n
 
+
+
+def use_free_cores(exit_on_error: bool = False) -> None:
+    """Use only the cores other processes leave free (``threads_for_load``): two spinning threads beside a busy process
+    are slower than one. ``PRISMONET_THREADS=N`` sets the count (``ValueError`` for anything but a positive whole
+    number, or with ``exit_on_error`` one line on stderr and exit status 2, as a script should); with
+    ``OMP_NUM_THREADS`` set, torch's count is left as it is. Every ``prismonet`` command calls it at its start, and so
+    do the scripts that run models (``scripts/``); commands that choose their own count (``train``'s ``threads``,
+    ``bench``) still do."""
+    import os
+    import sys
+
+    import torch
+
+    global follow_ceiling
+    forced = os.environ.get("PRISMONET_THREADS", "").strip()
+    if forced:
+        if not forced.isdigit() or int(forced) < 1:
+            message = f"PRISMONET_THREADS must be a positive whole number, got {forced!r}"
+            if exit_on_error:
+                print(f"{os.path.basename(sys.argv[0])}: error: {message}", file=sys.stderr)
+                raise SystemExit(2)
+            raise ValueError(message)
+        torch.set_num_threads(int(forced))
+        return
+    if os.environ.get("OMP_NUM_THREADS"):
+        return
+    default = torch.get_num_threads()
+    if default < 2:
+        return
+    follow_ceiling = default  # long commands follow the load up to it (follow_load)
+    busy = busy_cores()  # None where it cannot be measured (no /proc/stat, or no sched_getaffinity): keep torch's count
+    if busy is None:
+        return
+    n = threads_for_load(len(os.sched_getaffinity(0)), busy, default)
+    if n < default:
+        print(f"prismonet: other processes keep {busy:.1f} cores busy: running on {n} thread{'s' * (n > 1)} "
+              f"(PRISMONET_THREADS=N to choose)", file=sys.stderr)
+        torch.set_num_threads(n)

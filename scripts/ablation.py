@@ -31,6 +31,9 @@ def main() -> None:
     ap.add_argument("--limit", type=int, help="evaluate the first N test scenes only")
     ap.add_argument("--threads", type=int, help="training threads (1 when two rows run at once)")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     spec = json.loads(Path(args.rows).read_text())
     out = Path(args.out)
     rows = [r for r in spec["rows"] if not args.only or r["slug"] in args.only]

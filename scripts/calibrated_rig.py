@@ -40,6 +40,9 @@ def main() -> None:
     ap.add_argument("--tag", default="")
     ap.add_argument("inference", nargs=argparse.REMAINDER, help="after --: test-time step flags for real reconstruct")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     flags = [a for a in args.inference if a != "--"]
     out = Path(args.out)
     rig = replace(RigConfig(), elevation=args.elevation, heading_offset=args.heading)

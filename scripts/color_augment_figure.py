@@ -21,6 +21,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", required=True, help="PNG path")
     args = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     if args.scenes <= 0 or not 0 < args.hue <= 180:
         print(f"color_augment_figure: error: --scenes must be positive and --hue in (0, 180], got {args.scenes} and {args.hue}",
               file=sys.stderr)

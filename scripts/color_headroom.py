@@ -31,6 +31,9 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=300)
     ap.add_argument("--batch", type=int, default=50)
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     keep_freed_memory()
     model, info = load_model(args.model)
     model.eval()

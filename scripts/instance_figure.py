@@ -30,6 +30,9 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=256, help="scenes searched for --differ")
     ap.add_argument("--out", required=True, help="PNG path")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     names = args.names.split(",") if args.names else args.models
     if len(names) != len(args.models):
         raise SystemExit(f"--names: {len(names)} labels for {len(args.models)} models")

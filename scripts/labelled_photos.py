@@ -74,6 +74,9 @@ def main() -> None:
     ap.add_argument("--gray", action="store_true", help="make each photo grey (its luminance), last")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     ds = SceneDataset(args.data, args.split)
     out = Path(args.out)
     (out / "photos").mkdir(parents=True, exist_ok=True)

@@ -36,6 +36,9 @@ def main() -> None:
                          "(realdata.color; the copies go to OUT/normalized/)")
     ap.add_argument("flags", nargs="*", help="after --: more flags for prismonet evaluate")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rungs = [("training renderer", Path(args.base))] + [(f"rung {r}", Path(args.ladder) / r) for r in "abcd"

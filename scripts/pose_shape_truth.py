@@ -42,6 +42,10 @@ def main(argv=None) -> int:
                     help="also draw every matched object, of every category, with each of the prior's codes at the true poses, "
                          "and tabulate which code fits best (slower: one scene render per code and object)")
     args = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     if args.limit <= 0 or args.batch <= 0 or args.figure_rows <= 0:
         print("pose_shape_truth: error: --limit, --batch and --figure-rows must be positive", file=sys.stderr)
         return 2

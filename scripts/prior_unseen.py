@@ -29,6 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=800, help="code-fit steps per mesh")
     ap.add_argument("--out", default=None, help="JSON of every mesh's row")
     a = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     if not (Path(a.shapes) / "models.json").is_file():
         print(f"prior_unseen: error: {a.shapes} has no models.json (import the setting with `prismonet shapes import-furniture`)",
               file=sys.stderr)

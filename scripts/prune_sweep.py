@@ -43,6 +43,9 @@ def main() -> None:
     ap.add_argument("--gains", default="1,5,10,25", help="the grid's least gains in pixels (comma-separated)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     model, _ = load_model(args.model)
     ds = SceneDataset(args.data, split=args.split)
     n = min(args.limit, len(ds))

@@ -57,6 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-color", action="store_true", help="run the test-time colour fit (50 steps) on every row")
     ap.add_argument("--rows", default="model,shape,pose,all", help=f"comma-separated, of {','.join(ROWS)}")
     a = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     rows = [r.strip() for r in a.rows.split(",") if r.strip()]
     bad = [r for r in rows if r not in ROWS]
     if bad or not rows or a.limit <= 0 or a.batch <= 0:

@@ -59,6 +59,9 @@ def main() -> None:
     ap.add_argument("--decodings", default="", help="'|'-separated evaluate flags per decoding ('' = feed-forward)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     model, _ = load_model(args.model)
     ds = SceneDataset(args.data, split=args.split)
     n = min(args.limit, len(ds))

@@ -60,6 +60,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", nargs="+", metavar="FLAGS",
                     help="per model, its test-time steps as one string of prismonet evaluate's flags (default: none)")
     args = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     names = args.names.split(",") if args.names else args.models
     if len(names) != len(args.models):
         raise SystemExit(f"--names: {len(names)} labels for {len(args.models)} models")

@@ -89,6 +89,9 @@ def main() -> None:
     ap.add_argument("--holdout", type=int, default=256)
     ap.add_argument("--out", required=True, help="JSON of the results; each variant's run folder goes beside it")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     base, info = load_model(args.model)
     ds = SceneDataset(args.data, split="train")
     targets = DistillTargets(args.targets, base.cfg.num_slots)

@@ -48,6 +48,9 @@ def main() -> None:
     ap.add_argument("--passes", type=int, default=1, help="run every setting this many times, interleaved")
     ap.add_argument("--batch", type=int, default=16, help="scenes per batch (default 16, as evaluate's)")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     runs = []
     for text in args.settings:  # validate all before running any
         try:

@@ -38,6 +38,10 @@ def main(argv=None) -> int:
     ap.add_argument("--category", type=int, default=2, help="with --true-parts: the prior's category id (Clevr: 2, cubes)")
     ap.add_argument("--library", default="clevr", help="with --true-parts: the shape library whose yaw periods the true poses take")
     args = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     parts = [t for t in args.true_parts.split(",") if t]
     if any(t not in ("position", "yaw", "scale") for t in parts):
         print(f"shape_codes: error: --true-parts takes position, yaw and scale, got {args.true_parts!r}", file=sys.stderr)

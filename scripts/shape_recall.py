@@ -39,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=50)
     ap.add_argument("--recolor", nargs=3, metavar=("SHAPE", "FROM", "TO"), default=None)
     args = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     recolor = None
     if args.recolor is not None:
         try:

@@ -33,6 +33,9 @@ def main() -> None:
     ap.add_argument("--color-only", action="store_true", help="the rule reads colour alone")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     model, _ = load_model(args.model)
     ds = SceneDataset(args.data, split=args.split)
     n = min(args.limit, len(ds))

@@ -30,6 +30,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--holdout", type=int, default=256)
     ap.add_argument("--batch", type=int, default=64)
     a = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     if a.holdout <= 0 or a.batch <= 0:
         print("target_ceiling: error: --holdout and --batch must be positive", file=sys.stderr)
         return 2

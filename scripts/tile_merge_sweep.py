@@ -28,6 +28,9 @@ def main() -> None:
     ap.add_argument("--iou", default="0.3")
     ap.add_argument("--cover", default="0.6")
     args = ap.parse_args()
+    from prismonet.threads import use_free_cores
+
+    use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     summary = {Path(r["photo"]).resolve(): r for r in json.loads((Path(args.run) / "summary.json").read_text())}
     labels = load_labels(args.labels)
     shapes = {lab.photo: read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2] for lab in labels}

@@ -18,6 +18,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("shapes", help="a folder made by 'prismonet shapes import-furniture', or 'clevr'")
     ap.add_argument("--split", default="seen", choices=("seen", "unseen"))
     args = ap.parse_args(argv)
+    from prismonet.threads import use_free_cores
+
+    if argv is None:  # the command line; a caller passing argv (a test) keeps its own threads
+        use_free_cores(exit_on_error=True)  # the cores others leave free; PRISMONET_THREADS=N to choose
     from prismonet.shapes.symmetry import library_yaw_periods
 
     periods = library_yaw_periods(args.shapes, args.split)

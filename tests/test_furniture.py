@@ -188,3 +188,31 @@ def test_rotation_error_up_to_the_settings_pseudo_symmetry(source, tmp_path):
     assert angle_error(math.radians(190), 0.0, setting_symmetry(ds)) == pytest.approx(10.0)
     assert setting_symmetry(SimpleNamespace(meta={"config": {"shapes": "clevr"}})) is None
     assert setting_symmetry(SimpleNamespace(meta=None)) is None
+
+
+def test_generated_shapes_take_a_colour_each_and_the_same_shapes_either_way(source, tmp_path, script):
+    """``scripts/revolved_shapes.py --colors random``: each generated model gets one colour of its own, written to its
+    PLY (the scenes read those) and to ``models.json``; the meshes are those of ``--colors grey`` for the same seed."""
+    from prismonet.shapes.library import shape_library
+
+    rev = script("revolved_shapes")
+    import_setting("cars", tmp_path / "cars", source, progress=False)
+    assert rev.main([str(tmp_path / "cars"), str(tmp_path / "grey"), "--count", "4"]) == 0
+    assert rev.main([str(tmp_path / "cars"), str(tmp_path / "rand"), "--count", "4", "--colors", "random"]) == 0
+    grey, rand = shape_library(str(tmp_path / "grey")), shape_library(str(tmp_path / "rand"))
+    assert len(grey.specs) == len(rand.specs) == 5  # the imported car and four generated
+    record = {m["name"]: m for m in json.loads((tmp_path / "rand" / "models.json").read_text())["models"]}
+    seen = []
+    for i, path in enumerate(rand.files):
+        assert np.array_equal(grey.mesh(i)[0], rand.mesh(i)[0])
+        name = path.rsplit("/", 1)[-1][:-4]
+        if not name.startswith("generated"):
+            continue
+        fc = rand.face_colors(i)
+        assert (fc == fc[0]).all() and (grey.face_colors(i) == 178).all()  # one colour per model; grey 0.7
+        assert np.abs(fc[0] / 255 - np.asarray(record[name]["color"])).max() < 0.003
+        seen.append(tuple(fc[0]))
+    assert len(set(seen)) == 4
+    rng = np.random.default_rng(0)
+    c = np.array([rev.random_color(rng) for _ in range(500)])
+    assert c.min() >= 0 and c.max() <= 1 and c.max(1).min() >= 0.08 - 1e-9  # HSV value is the largest channel

@@ -90,7 +90,7 @@ def test_rejects_bad_settings(kw):
         ThreadGovernor(set_threads=lambda n: None, **kw)
 
 
-# --- the command line's start-up thread count (prismonet.threads.threads_for_load, prismonet.cli._set_threads) ---
+# --- the command line's start-up thread count (prismonet.threads.threads_for_load, prismonet.threads.use_free_cores) ---
 
 STAT = """cpu  {u} 0 {s} {i} {w} 0 0 0 0 0
 cpu0 1 0 1 1 0 0 0 0 0 0
@@ -130,16 +130,16 @@ def test_threads_for_load_takes_the_free_cores_up_to_the_default():
 def test_prismonet_threads_sets_the_count_and_a_bad_value_is_one_line(monkeypatch):
     import torch
 
-    from prismonet.cli import _set_threads
+    from prismonet.threads import use_free_cores
 
     before = torch.get_num_threads()
     try:
         monkeypatch.setenv("PRISMONET_THREADS", "1")
-        _set_threads()
+        use_free_cores()
         assert torch.get_num_threads() == 1
         monkeypatch.setenv("PRISMONET_THREADS", "two")
         with pytest.raises(ValueError, match="PRISMONET_THREADS must be a positive whole number"):
-            _set_threads()
+            use_free_cores()
     finally:
         torch.set_num_threads(before)
 
@@ -215,3 +215,25 @@ def test_distillation_follows_the_load_before_each_chunk(monkeypatch, tmp_path):
     assert calls == [1]
     fit_targets(model, ds, tmp_path / "t", 2, InferenceConfig(), batch_size=2, progress=False)  # resumed: nothing left
     assert calls == [1]
+
+
+def test_a_script_takes_the_same_thread_choice_and_says_a_bad_value_in_one_line(monkeypatch, capsys):
+    """``use_free_cores(exit_on_error=True)``, as the scripts in ``scripts/`` call it: the count is set the same way, and
+    a bad ``PRISMONET_THREADS`` is one line on stderr and exit status 2 instead of a traceback."""
+    import torch
+
+    from prismonet.threads import use_free_cores
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setenv("PRISMONET_THREADS", "1")
+        use_free_cores(exit_on_error=True)
+        assert torch.get_num_threads() == 1
+        monkeypatch.setenv("PRISMONET_THREADS", "0")
+        with pytest.raises(SystemExit) as e:
+            use_free_cores(exit_on_error=True)
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].endswith("error: PRISMONET_THREADS must be a positive whole number, got '0'")
+    finally:
+        torch.set_num_threads(before)

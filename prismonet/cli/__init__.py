@@ -15,7 +15,7 @@ the pipeline, each building its own sub-parser:
 
 Every command runs with freed memory kept for reuse (``prismonet.allocator``; ``PRISMONET_MALLOC=default`` turns it
 off). Run from the command line, every command first takes only the cores other processes leave free
-(``_set_threads``; ``PRISMONET_THREADS=N`` or ``OMP_NUM_THREADS`` choose instead); ``distill`` measures again before
+(``prismonet.threads.use_free_cores``; ``PRISMONET_THREADS=N`` or ``OMP_NUM_THREADS`` choose instead); ``distill`` measures again before
 each chunk (``threads.follow_load``). Every command reports a bad
 input as one line, ``prismonet: error: ...``, and exit status 2: output
 paths are checked before any work (each sub-parser declares them as ``outputs``), the library's
@@ -77,39 +77,6 @@ def _checked_outputs(args) -> list[Path]:
     return new_dirs
 
 
-def _set_threads() -> None:
-    """Use only the cores other processes leave free (``prismonet.threads.threads_for_load``): two spinning threads
-    beside a busy process are slower than one. ``PRISMONET_THREADS=N`` sets the count; with ``OMP_NUM_THREADS`` set,
-    torch's count is left as it is. Commands that choose their own (``train``'s ``threads``, ``bench``) still do."""
-    import os
-
-    import torch
-
-    from prismonet import threads
-    from prismonet.threads import busy_cores, threads_for_load
-
-    forced = os.environ.get("PRISMONET_THREADS", "").strip()
-    if forced:
-        if not forced.isdigit() or int(forced) < 1:
-            raise ValueError(f"PRISMONET_THREADS must be a positive whole number, got {forced!r}")
-        torch.set_num_threads(int(forced))
-        return
-    if os.environ.get("OMP_NUM_THREADS"):
-        return
-    default = torch.get_num_threads()
-    if default < 2:
-        return
-    threads.follow_ceiling = default  # long commands follow the load up to it (threads.follow_load)
-    busy = busy_cores()  # None where it cannot be measured (no /proc/stat, or no sched_getaffinity): keep torch's count
-    if busy is None:
-        return
-    n = threads_for_load(len(os.sched_getaffinity(0)), busy, default)
-    if n < default:
-        print(f"prismonet: other processes keep {busy:.1f} cores busy: running on {n} thread{'s' * (n > 1)} "
-              f"(PRISMONET_THREADS=N to choose)", file=sys.stderr)
-        torch.set_num_threads(n)
-
-
 def _parse(argv: list[str] | None):
     """``(args, None)``, or ``(None, exit status)`` for ``--help`` (0) and a bad argument (2, one line printed)."""
     try:
@@ -126,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     from prismonet.files import shown
     from prismonet.model.io import CheckpointError
     from prismonet.model.trainer import TrainingError
+    from prismonet.threads import use_free_cores
     from prismonet.shapes.normalize import MeshError
     from realdata.io import PhotoError
 
@@ -137,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     new_dirs: list[Path] = []
     try:
         if argv is None:  # the command line (a caller passing argv, e.g. a test, keeps its own threads)
-            _set_threads()
+            use_free_cores()
         keep_freed_memory()  # every command: no page faults for buffers a loop frees and allocates again
         new_dirs = _checked_outputs(args)
         rc = args.func(args)
