@@ -214,7 +214,6 @@ def follow_load(busy: Callable[[], float | None] | None = None) -> int | None:
     return n
 
 
-
 def use_free_cores(exit_on_error: bool = False) -> None:
     """Use only the cores other processes leave free (``threads_for_load``): two spinning threads beside a busy process
     are slower than one. ``PRISMONET_THREADS=N`` sets the count (``ValueError`` for anything but a positive whole

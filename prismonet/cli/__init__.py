@@ -93,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     from prismonet.files import shown
     from prismonet.model.io import CheckpointError
     from prismonet.model.trainer import TrainingError
-    from prismonet.threads import use_free_cores
     from prismonet.shapes.normalize import MeshError
+    from prismonet.threads import use_free_cores
     from realdata.io import PhotoError
 
     if hasattr(sys.stdout, "reconfigure"):  # print paths that are not valid UTF-8 escaped, as stderr does
