@@ -7,7 +7,8 @@
 ``--reanchor-keep X`` sets ``reanchor_keep_logit``, the keep logit a re-anchored slot must beat (``none``: never
 dropped); ``--anchor-shade K`` sets ``anchor_shade_min``, the least even darkening the anchor rule reads as a cast
 shadow (``none``: off, as trained); ``--anchor-gray T`` sets ``anchor_gray_tol``, the luminance difference the anchor
-rule reads as unexplained in a greyscale image (``none``: grey images read as colour ones).
+rule reads as unexplained in a greyscale image (``none``: grey images read as colour ones); ``--anchor-color T`` sets
+``anchor_color_tol``, the per-channel colour difference the anchor rule reads as unexplained in a colour image.
 
     python3 scripts/set_refine_passes.py tabletop_keep 2 runs/tabletop_keep_noshade --anchor-shade none   # session 48's
 
@@ -55,6 +56,8 @@ def main() -> None:
     ap.add_argument("--anchor-gray", default=None, metavar="T",
                     help="also set anchor_gray_tol: in a greyscale image, a luminance miss above T is unexplained and "
                          "nothing reads as a shadow ('none': off)")
+    ap.add_argument("--anchor-color", type=float, default=None, metavar="T",
+                    help="also set anchor_color_tol: in a colour image, a per-channel colour miss above T is unexplained")
     args = ap.parse_args()
     model, info = load_model(args.model)
     if not model.cfg.refine_passes or args.passes < 1:
@@ -84,6 +87,10 @@ def main() -> None:
         if not model.cfg.anchor:
             raise SystemExit(f"{args.model}: --anchor-gray needs an anchored model")
         fields["anchor_gray_tol"] = number_or_none("--anchor-gray", args.anchor_gray)
+    if args.anchor_color is not None:
+        if not model.cfg.anchor:
+            raise SystemExit(f"{args.model}: --anchor-color needs an anchored model")
+        fields["anchor_color_tol"] = args.anchor_color
     try:
         cfg = replace(model.cfg, **fields)
     except ValueError as e:

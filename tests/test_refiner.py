@@ -772,10 +772,33 @@ def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
                               ("tabletop_keep", ["--reanchor-keep", "x"], "--reanchor-keep: expected a number"),
                               ("clevr3_glimpse", ["--keep-logit", "1"], "--keep-logit needs a refiner with a keep output"),
                               ("clevr3_glimpse", ["--rescue", "10"], "--rescue needs a refiner with a keep output"),
-                              ("cars_keep", ["--rescue", "-1"], "refiner_rescue_px must be >= 0")):
+                              ("cars_keep", ["--rescue", "-1"], "refiner_rescue_px must be >= 0"),
+                              ("clevr3_glimpse", ["--anchor-color", "0.2"], "--anchor-color needs an anchored model"),
+                              ("tabletop_keep", ["--anchor-color", "0"], "anchor_color_tol > 0")):
         r = subprocess.run([sys.executable, str(script), name, "2", str(tmp_path / "out"), *extra], capture_output=True, text=True)
         assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "out").exists()
+
+
+def test_set_refine_passes_anchor_color_writes_the_tolerance_and_the_same_weights(tmp_path):
+    """``--anchor-color T`` writes a copy whose ``anchor_color_tol`` is T, with the source's weights and the change
+    recorded."""
+    import subprocess
+    import sys
+    from dataclasses import replace
+
+    from prismonet.model.io import load_model
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "set_refine_passes.py"
+    r = subprocess.run([sys.executable, str(script), "clevr1to8_keep", "2", str(tmp_path / "out"), "--anchor-color", "0.2"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    src, new = load_model("clevr1to8_keep")[0], load_model(str(tmp_path / "out"))[0]
+    assert new.cfg.anchor_color_tol == 0.2 and src.cfg.anchor_color_tol == 0.25
+    assert replace(new.cfg, anchor_color_tol=0.25) == src.cfg
+    assert all(torch.equal(a, b) for a, b in zip(src.state_dict().values(), new.state_dict().values()))
+    record = json.loads((tmp_path / "out" / "model.json").read_text())
+    assert record["refine_passes_from"]["anchor_color_tol"] == 0.25
 
 
 def test_color_term_hand_computed():
