@@ -13,7 +13,7 @@ from prismonet.geometry.camera import intrinsics_matrix, look_at, project
 from prismonet.model.fit_score import fit_score
 from prismonet.model.inference import InferenceConfig, infer
 from prismonet.model.io import load_model
-from prismonet.model.reseed import ReseedConfig, place_on_ground, ray_at_height, reseed
+from prismonet.model.reseed import ReseedConfig, place_on_ground, ray_at_height, reseed, support_height
 from prismonet.model.unexplained import largest_components, opening
 from prismonet.model.stopping import keep_slots
 
@@ -54,6 +54,28 @@ def test_scale_stays_in_range():
     _, s = place_on_ground(uv, torch.tensor([1.0, 4000.0], dtype=torch.float64), K.expand(2, 3, 3), T.expand(2, 4, 4),
                            torch.zeros(2, dtype=torch.float64), (0.25, 0.9))
     assert s.tolist() == [0.25, 0.9]
+
+
+def test_support_height_reads_the_surface_under_a_region():
+    """A horizontal surface at world height 0.7 seen through the test camera: every pixel's camera depth is where
+    its ray meets z = 0.7, so the median world height of the covered region's pixels is 0.7; a region covered
+    less than ``min_share`` gives NaN."""
+    K, T = camera()
+    H = W = 64
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    uv = torch.stack([u.flatten(), v.flatten()], -1)
+    pts = ray_at_height(uv, K.expand(H * W, 3, 3), T.expand(H * W, 4, 4), torch.full((H * W,), 0.7, dtype=torch.float64))
+    depth = ((pts - T[0, :3, 3]) @ T[0, :3, 2]).reshape(1, H, W)  # camera z
+    region = torch.zeros(2, H, W, dtype=torch.bool)
+    region[:, 20:40, 10:30] = True
+    covered = torch.zeros(2, H, W, dtype=torch.bool)
+    covered[0] = True
+    covered[1, 20:24, 10:30] = True  # a fifth of the region
+    h = support_height(depth.expand(2, H, W), covered, region, K.expand(2, 3, 3), T.expand(2, 4, 4))
+    assert float(h[0]) == pytest.approx(0.7, abs=1e-9)
+    assert math.isnan(float(h[1]))
+    assert float(support_height(depth.expand(2, H, W), covered, region, K.expand(2, 3, 3), T.expand(2, 4, 4),
+                                min_share=0.2)[1]) == pytest.approx(0.7, abs=1e-9)
 
 
 def test_opening_drops_seams_and_keeps_blobs():
@@ -125,10 +147,27 @@ def test_reseed_never_fits_worse_and_zero_rounds_is_identity(decoded):
         assert bool((end <= start + 1e-7).all())
 
 
+def test_on_objects_adds_trials_and_never_fits_worse(decoded):
+    """With ``on_objects`` a round tries the ground placements and more, so after one round every scene fits at
+    least as well as with the ground alone, and no worse than at the start."""
+    model, batch, out = decoded
+    keep = torch.ones_like(out.obj_mask.flatten(2).any(2))
+    keep[:, 0] = False
+    emptied = keep_slots(out, keep)
+    start = fit_score(emptied.composite.image, emptied.composite.depth, batch.rgb, batch.depth)
+    ground = reseed(model, emptied, batch, ReseedConfig(rounds=1))
+    both = reseed(model, emptied, batch, ReseedConfig(rounds=1, on_objects=True))
+    g = fit_score(ground.composite.image, ground.composite.depth, batch.rgb, batch.depth)
+    b = fit_score(both.composite.image, both.composite.depth, batch.rgb, batch.depth)
+    assert bool((b <= g + 1e-7).all()) and bool((b <= start + 1e-7).all())
+
+
 def test_inference_config_runs_it():
     cfg = InferenceConfig.of(reseed=2)
     assert cfg.reseed.rounds == 2 and not cfg.feed_forward
     assert "2 re-seeding rounds" in cfg.describe()
+    assert not cfg.reseed.on_objects
+    assert "also on other objects" in InferenceConfig.of(reseed=2, reseed_on_objects=True).describe()
     cycled = InferenceConfig.of(reseed=2, reseed_cycles=3, search=1)
     assert "then the search, 3 times" in cycled.describe()
     with pytest.raises(ValueError, match="--reseed-cycles"):

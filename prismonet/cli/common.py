@@ -34,6 +34,9 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                    help="with --search: re-seed, then search, C times (default 1)")
     g.add_argument("--reseed-grow", type=int, default=0, metavar="G",
                    help="add G empty slots to the model's before re-seeding, for scenes with more objects than slots (default 0)")
+    g.add_argument("--reseed-on-objects", action="store_true",
+                   help="with --reseed: also try each proposal resting on the object surface under it, not only on the ground "
+                        "(for stacked objects)")
     g.add_argument("--search", type=int, default=search, metavar="R",
                    help=f"search each slot's scale, position and yaw for R rounds (default {search}; 3 is the measured setting)")
     g.add_argument("--search-scales", metavar="S,S,...",
@@ -85,7 +88,8 @@ def inference_config(args, has_depth: bool = True):
                               search_shapes=getattr(args, "search_shapes", 0),
                               reseed=getattr(args, "reseed", 0), reseed_cycles=getattr(args, "reseed_cycles", 1),
                               reseed_grow=getattr(args, "reseed_grow", 0), search_set=getattr(args, "search_set", None),
-                              shape_trials=bool(getattr(args, "shape_trials", False)))
+                              shape_trials=bool(getattr(args, "shape_trials", False)),
+                              reseed_on_objects=getattr(args, "reseed_on_objects", False))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

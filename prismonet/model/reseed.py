@@ -16,7 +16,9 @@ geometry: in each round, per scene,
    disc covers the component's area at that depth (a fixed point, ``PLACE_ITERATIONS`` steps); each
    shape category's medoid code of the prior is tried at ``TRIAL_SCALES`` times that scale (the centre
    kept on the same ray at the new height), with the texture latent fitted to the component's pixels
-   (``TEXTURE_STEPS`` Adam steps on that slot alone);
+   (``TEXTURE_STEPS`` Adam steps on that slot alone). With ``on_objects``, each is also tried resting on
+   the surface the composition shows under the component (``support_height``: another slot's top, for
+   stacked objects, whose ground placement falls behind the object they rest on);
 4. the best trial is kept only where it lowers the scene's ``fit_score``, so re-seeding never makes a
    scene fit worse; a component whose trials all fail is not proposed again, so the next round tries
    the next largest.
@@ -47,6 +49,9 @@ TEXTURE_STEPS = 30
 TEXTURE_LR = 0.1
 TRIAL_SCALES = (0.8, 1.0, 1.25)
 """Multipliers of the placed scale tried per shape: a component partly hidden is smaller than its object."""
+RAISED_SUPPORT = 0.1
+"""With ``on_objects``: a surface under a component counts as a support only this far above the ground (world
+units); lower, the ground trials already cover it."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +72,9 @@ class ReseedConfig:
     """What an explained pixel is, and how little a slot must explain to count as idle (``min_gain``)."""
     w_image: float = 1.0
     w_depth: float = 0.1
+    on_objects: bool = False
+    """Also try each proposal resting on the slot surface the composition shows under it, not only on the
+    ground (for stacked objects; twice the trials where a slot is under the component)."""
 
     def __post_init__(self) -> None:
         if self.rounds < 0:
@@ -106,6 +114,25 @@ def place_on_ground(uv: torch.Tensor, area: torch.Tensor, K: torch.Tensor, T_wor
         depth = torch.einsum("bi,bi->b", x_cam, T_world_cam[:, :3, 2])  # camera z: the camera's z axis in world
         s = (depth * torch.sqrt(area / torch.pi) / f).clamp(lo, hi)
     return ray_at_height(uv, K, T_world_cam, ground_z + s), s
+
+
+def support_height(comp_depth: torch.Tensor, covered: torch.Tensor, region: torch.Tensor, K: torch.Tensor,
+                   T_world_cam: torch.Tensor, min_share: float = 0.5) -> torch.Tensor:
+    """``(B,)`` world height of the surface the composition shows under each scene's ``region (B, H, W)`` bool:
+    the median world ``z`` of the region's pixels that a slot covers (``covered (B, H, W)`` bool), at their camera
+    depth ``comp_depth (B, H, W)``; NaN where slots cover less than ``min_share`` of the region."""
+    B, H, W = region.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=comp_depth.dtype), torch.arange(W, dtype=comp_depth.dtype), indexing="ij")
+    x = (u - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None] * comp_depth
+    y = (v - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None] * comp_depth
+    R, t = T_world_cam[:, :3, :3], T_world_cam[:, :3, 3]
+    z_world = R[:, 2, 0, None, None] * x + R[:, 2, 1, None, None] * y + R[:, 2, 2, None, None] * comp_depth + t[:, 2, None, None]
+    out = torch.full((B,), float("nan"), dtype=comp_depth.dtype)
+    for b in range(B):
+        on = region[b] & covered[b]
+        if on.sum() >= max(1, min_share * region[b].sum()):
+            out[b] = z_world[b][on].median()
+    return out
 
 
 def category_medoids(prior) -> torch.Tensor:
@@ -183,28 +210,35 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
         k = idle.float().argmax(1)  # the first idle slot of each scene
         area = region.flatten(1).sum(1).to(batch.rgb.dtype).clamp_min(1)
         uv = torch.stack([(region * xs).flatten(1).sum(1), (region * ys).flatten(1).sum(1)], -1) / area[:, None]
-        _, placed = place_on_ground(uv, area, batch.K, batch.T_world_cam, ground_z, model.cfg.scale_range)
+        supports = [(ground_z, go)]
+        if cfg.on_objects:  # resting on the slot surface under the component, where that is above the ground
+            top = support_height(comp.depth[:, 0], comp.mask[:, 0] > 0, region, batch.K, batch.T_world_cam)
+            raised = go & (top > ground_z + RAISED_SUPPORT)
+            if raised.any():
+                supports.append((torch.where(raised, top, ground_z), raised))
         # each scene's best trial for its slot k: latents and single-slot renders, kept where the score falls
         pick = {name: getattr(params, name)[rows, k].clone() for name in ("z_sh", "z_tex", "position", "scale")}
         pick_d, pick_m, pick_c = obj_depth[rows, k].clone(), obj_mask[rows, k].clone(), obj_color[rows, k].clone()
         round_best = best.clone()
-        for z_sh, mult in itertools.product(shapes, TRIAL_SCALES):
-            scale = (placed * mult).clamp(lo, hi)
-            position = ray_at_height(uv, batch.K, batch.T_world_cam, ground_z + scale)
-            one = SceneParams(z_sh.expand(B, -1)[:, None].to(params.z_sh.dtype), params.z_tex[rows, k][:, None],
-                              position[:, None], upright, scale[:, None],
-                              None if params.axis is None else params.axis[rows, k][:, None], go[:, None])
-            geo = render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, settings)
-            one = replace(one, z_tex=_fit_texture(model, one, geo, batch.rgb, region))
-            color = shade_objects(model.color_fn, one, geo)  # the same hits, coloured
-            d, m, c = obj_depth.clone(), obj_mask.clone(), obj_color.clone()
-            d[rows, k], m[rows, k], c[rows, k] = geo.depth[:, 0], geo.mask[:, 0], color[:, 0]
-            score, _ = scored(d, m, c)
-            win = go & (score < round_best)
-            round_best = torch.where(win, score, round_best)
-            for name, t in pick.items():
-                t[win] = getattr(one, name)[win, 0]
-            pick_d[win], pick_m[win], pick_c[win] = geo.depth[win, 0], geo.mask[win, 0], color[win, 0]
+        for base, live in supports:
+            _, placed = place_on_ground(uv, area, batch.K, batch.T_world_cam, base, model.cfg.scale_range)
+            for z_sh, mult in itertools.product(shapes, TRIAL_SCALES):
+                scale = (placed * mult).clamp(lo, hi)
+                position = ray_at_height(uv, batch.K, batch.T_world_cam, base + scale)
+                one = SceneParams(z_sh.expand(B, -1)[:, None].to(params.z_sh.dtype), params.z_tex[rows, k][:, None],
+                                  position[:, None], upright, scale[:, None],
+                                  None if params.axis is None else params.axis[rows, k][:, None], live[:, None])
+                geo = render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, settings)
+                one = replace(one, z_tex=_fit_texture(model, one, geo, batch.rgb, region))
+                color = shade_objects(model.color_fn, one, geo)  # the same hits, coloured
+                d, m, c = obj_depth.clone(), obj_mask.clone(), obj_color.clone()
+                d[rows, k], m[rows, k], c[rows, k] = geo.depth[:, 0], geo.mask[:, 0], color[:, 0]
+                score, _ = scored(d, m, c)
+                win = live & (score < round_best)
+                round_best = torch.where(win, score, round_best)
+                for name, t in pick.items():
+                    t[win] = getattr(one, name)[win, 0]
+                pick_d[win], pick_m[win], pick_c[win] = geo.depth[win, 0], geo.mask[win, 0], color[win, 0]
         win = round_best < best
         tried |= region & ~win.view(-1, 1, 1)
         if not win.any():
