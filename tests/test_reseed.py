@@ -168,6 +168,8 @@ def test_inference_config_runs_it():
     assert "2 re-seeding rounds" in cfg.describe()
     assert not cfg.reseed.on_objects
     assert "also on other objects" in InferenceConfig.of(reseed=2, reseed_on_objects=True).describe()
+    with pytest.raises(ValueError, match="--reseed-on-objects needs"):
+        InferenceConfig.of(reseed_on_objects=True)
     cycled = InferenceConfig.of(reseed=2, reseed_cycles=3, search=1)
     assert "then the search, 3 times" in cycled.describe()
     with pytest.raises(ValueError, match="--reseed-cycles"):

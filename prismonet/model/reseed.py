@@ -83,6 +83,8 @@ class ReseedConfig:
             raise ValueError(f"reseed: the slots to add (--reseed-grow) must be >= 0, got {self.grow}")
         if self.cycles < 1:
             raise ValueError(f"reseed: the cycles (--reseed-cycles) must be >= 1, got {self.cycles}")
+        if self.on_objects and self.rounds == 0:
+            raise ValueError("reseed: --reseed-on-objects needs re-seeding rounds (--reseed R, R >= 1)")
         if self.min_area < 1 or self.open < 0:
             raise ValueError(f"reseed: min_area must be >= 1 and open >= 0, got {self.min_area} and {self.open}")
 
