@@ -34,6 +34,8 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from prismonet.geometry.camera import pixel_grid, unproject
+from prismonet.geometry.transforms import transform_points
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
 from prismonet.model.prune import prune_keep
@@ -124,17 +126,12 @@ def support_height(comp_depth: torch.Tensor, covered: torch.Tensor, region: torc
     the median world ``z`` of the region's pixels that a slot covers (``covered (B, H, W)`` bool), at their camera
     depth ``comp_depth (B, H, W)``; NaN where slots cover less than ``min_share`` of the region."""
     B, H, W = region.shape
-    v, u = torch.meshgrid(torch.arange(H, dtype=comp_depth.dtype), torch.arange(W, dtype=comp_depth.dtype), indexing="ij")
-    x = (u - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None] * comp_depth
-    y = (v - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None] * comp_depth
-    R, t = T_world_cam[:, :3, :3], T_world_cam[:, :3, 3]
-    z_world = R[:, 2, 0, None, None] * x + R[:, 2, 1, None, None] * y + R[:, 2, 2, None, None] * comp_depth + t[:, 2, None, None]
-    out = torch.full((B,), float("nan"), dtype=comp_depth.dtype)
-    for b in range(B):
-        on = region[b] & covered[b]
-        if on.sum() >= max(1, min_share * region[b].sum()):
-            out[b] = z_world[b][on].median()
-    return out
+    uv = pixel_grid(H, W, dtype=comp_depth.dtype, device=comp_depth.device).reshape(1, H * W, 2).expand(B, -1, -1)
+    z = transform_points(T_world_cam, unproject(uv, comp_depth.reshape(B, H * W, 1), K))[..., 2]
+    on = (region & covered).reshape(B, H * W)
+    height = torch.where(on, z, torch.full_like(z, float("nan"))).nanmedian(dim=1).values
+    enough = on.sum(1) >= (min_share * region.flatten(1).sum(1)).clamp_min(1)
+    return torch.where(enough, height, torch.full_like(height, float("nan")))
 
 
 def category_medoids(prior) -> torch.Tensor:
