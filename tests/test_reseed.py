@@ -3,6 +3,7 @@ opening and the component choice, and on a shipped model: an emptied slot is put
 and no scene ever fits worse."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -13,9 +14,10 @@ from prismonet.geometry.camera import intrinsics_matrix, look_at, project
 from prismonet.model.fit_score import fit_score
 from prismonet.model.inference import InferenceConfig, infer
 from prismonet.model.io import load_model
-from prismonet.model.reseed import ReseedConfig, place_on_ground, ray_at_height, reseed, support_height
+from prismonet.model.reseed import ReseedConfig, least_useful, place_on_ground, ray_at_height, reseed, support_height
 from prismonet.model.unexplained import largest_components, opening
-from prismonet.model.stopping import keep_slots
+from prismonet.model.prune import prune_keep
+from prismonet.model.stopping import StopRule, keep_slots
 
 
 def camera(dtype=torch.float64):
@@ -233,3 +235,69 @@ def test_grow_finds_an_object_the_model_has_no_slot_for(decoded):
     assert bool(grown.latents.params.active[:, 2].any())
     start = fit_score(two.composite.image, two.composite.depth, batch.rgb, batch.depth)
     assert bool((fit_score(grown.composite.image, grown.composite.depth, batch.rgb, batch.depth)[big] < start[big]).all())
+
+
+def test_least_useful_is_the_slot_that_explains_fewest_pixels(decoded):
+    """Slots painted pure red, green and blue over an input that is exactly their composition: each explains
+    its own visible pixels and nothing else, so the least useful slot is the one with the fewest visible pixels."""
+    _, batch, out = decoded
+    c = out.obj_color.clone()
+    for k in range(3):
+        c[:, k] = 0.0
+        c[:, k, k] = 1.0
+    planted = replace(out, obj_color=c)
+    truth = keep_slots(planted, torch.ones_like(out.obj_mask.flatten(2).any(2))).composite
+    visible = torch.stack([(truth.instance == k + 1).flatten(1).sum(1) for k in range(3)], 1)
+    kept = torch.ones_like(visible, dtype=torch.bool)
+    got = least_useful(StopRule(min_gain=10), planted, truth.image, torch.minimum(truth.depth, out.bg_depth), kept)
+    unique = (visible == visible.min(1, keepdim=True).values).sum(1) == 1
+    assert unique.sum() >= 3
+    assert got[unique].tolist() == visible.argmin(1)[unique].tolist()
+    # a slot not kept is never chosen
+    kept[torch.arange(len(got)), got] = False
+    again = least_useful(StopRule(min_gain=10), planted, truth.image, None, kept)
+    assert not bool((again == got).any())
+
+
+def test_replace_moves_a_used_slot_only_where_the_scene_then_fits_better():
+    """Five-object scenes read by a three-slot model: every slot is in use, so plain re-seeding changes nothing;
+    with ``replace_least`` a scene's least useful slot is moved onto an object no slot covers wherever that lowers
+    its fit score, and no scene fits worse."""
+    model, _ = load_model("clevr3_fc")
+    batch = SceneDataset(samples_for("clevr5"), split="test").batch(list(range(6)))
+    out = infer(model, batch, InferenceConfig())
+    busy = prune_keep(ReseedConfig().rule, out, batch.rgb, batch.depth).all(1)  # no idle slot
+    assert busy.sum() >= 2
+    start = fit_score(out.composite.image, out.composite.depth, batch.rgb, batch.depth)
+    plain = reseed(model, out, batch, ReseedConfig(rounds=1))
+    assert torch.equal(plain.composite.image[busy], out.composite.image[busy])
+    swapped = reseed(model, out, batch, ReseedConfig(rounds=2, replace_least=True))
+    end = fit_score(swapped.composite.image, swapped.composite.depth, batch.rgb, batch.depth)
+    assert bool((end <= start + 1e-7).all())
+    assert bool((end < start - 1e-4)[busy].any()), (start - end).tolist()
+    cfg = InferenceConfig.of(reseed=2, reseed_replace=True)
+    assert cfg.reseed.replace_least and "replacing the least useful slot" in cfg.describe()
+    with pytest.raises(ValueError, match="--reseed-replace needs"):
+        InferenceConfig.of(reseed_replace=True)
+
+
+def test_cast_shadows_are_not_proposed_for_a_model_that_reads_them(decoded):
+    """An input that the composition explains but for a patch of ground darkened evenly to 0.45 (a cast shadow), and
+    one empty slot: a model without a shadow rule re-seeds onto the patch in some scene; one whose anchors read
+    shadows (``anchor_shade_min`` 0.3) proposes nothing there, and its output is the start's."""
+    model, batch, out = decoded
+    patch = torch.zeros_like(out.composite.instance, dtype=torch.bool)
+    patch[:, 44:60, 2:22] = True
+    patch &= out.composite.instance == 0  # on the ground only
+    assert (patch.flatten(1).sum(1) >= 100).sum() >= 3
+    shadowed = replace(batch, rgb=torch.where(patch[:, None], 0.45 * out.composite.image, out.composite.image))
+    cfg = ReseedConfig(rounds=1, grow=1)
+    plain = reseed(model, out, shadowed, cfg, use_depth=False)
+    assert not torch.equal(plain.composite.image, out.composite.image)
+    kept_cfg = model.cfg
+    try:
+        model.cfg = replace(kept_cfg, anchor_shade_min=0.3)
+        ruled = reseed(model, out, shadowed, cfg, use_depth=False)
+    finally:
+        model.cfg = kept_cfg
+    assert torch.equal(ruled.composite.image, out.composite.image)

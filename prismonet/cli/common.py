@@ -37,6 +37,9 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
     g.add_argument("--reseed-on-objects", action="store_true",
                    help="with --reseed: also try each proposal resting on the object surface under it, not only on the ground "
                         "(for stacked objects)")
+    g.add_argument("--reseed-replace", action="store_true",
+                   help="with --reseed: a scene with no idle slot left tries each proposal with the slot that explains the "
+                        "fewest pixels alone, kept only where the scene then fits better")
     g.add_argument("--search", type=int, default=search, metavar="R",
                    help=f"search each slot's scale, position and yaw for R rounds (default {search}; 3 is the measured setting)")
     g.add_argument("--search-scales", metavar="S,S,...",
@@ -89,7 +92,8 @@ def inference_config(args, has_depth: bool = True):
                               reseed=getattr(args, "reseed", 0), reseed_cycles=getattr(args, "reseed_cycles", 1),
                               reseed_grow=getattr(args, "reseed_grow", 0), search_set=getattr(args, "search_set", None),
                               shape_trials=bool(getattr(args, "shape_trials", False)),
-                              reseed_on_objects=getattr(args, "reseed_on_objects", False))
+                              reseed_on_objects=getattr(args, "reseed_on_objects", False),
+                              reseed_replace=getattr(args, "reseed_replace", False))
 
 
 def ints(text: str, n: int, what: str) -> tuple[int, ...]:

@@ -71,7 +71,7 @@ class InferenceConfig:
            search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0,
            search_shapes: int = 0, reseed: int = 0, reseed_cycles: int = 1, reseed_grow: int = 0,
            search_set: list[str] | None = None, shape_trials: bool = False,
-           reseed_on_objects: bool = False) -> "InferenceConfig":
+           reseed_on_objects: bool = False, reseed_replace: bool = False) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each). ``shape_trials``: the
         search takes ``SHAPE_TRIAL_SETTINGS`` (``search`` must be 3 or more). ``search_set``: more ``FIELD=VALUE``
         settings of the search (``SearchConfig``, values as JSON), applied last."""
@@ -92,7 +92,8 @@ class InferenceConfig:
         return cls(extra_slots, search_cfg,
                    RefineConfig(refine, **{k: v for k, v in overrides.items() if v is not None}),
                    ColorFitConfig(fit_color), use_depth, StopRule() if stop else None, PRUNE_RULE if prune else None,
-                   ReseedConfig(rounds=reseed, cycles=reseed_cycles, grow=reseed_grow, on_objects=reseed_on_objects))
+                   ReseedConfig(rounds=reseed, cycles=reseed_cycles, grow=reseed_grow, on_objects=reseed_on_objects,
+                                replace_least=reseed_replace))
 
     @property
     def feed_forward(self) -> bool:
@@ -109,7 +110,8 @@ class InferenceConfig:
                  (f"{self.reseed.rounds} re-seeding rounds" + (f" (then the search, {self.reseed.cycles} times)"
                   if self.reseed.cycles > 1 and self.search.rounds else "")
                   + (f" with {self.reseed.grow} slots added" if self.reseed.grow else "")
-                  + (", also on other objects" if self.reseed.on_objects else "")) if self.reseed.rounds else "",
+                  + (", also on other objects" if self.reseed.on_objects else "")
+                  + (", replacing the least useful slot when none is idle" if self.reseed.replace_least else "")) if self.reseed.rounds else "",
                  (f"{self.search.rounds} pose-search rounds" + ("" if self.search.scales == SearchConfig().scales else
                   " (scales " + ", ".join(f"{v:g}" for v in self.search.scales) + ")")
                   + (", depth clipped" if self.search.far_clip else "")

@@ -6,11 +6,14 @@ so it cannot carry a hidden slot to an object nobody covers. This step does that
 geometry: in each round, per scene,
 
 1. the pixels the composition does not explain (``StopRule.unexplained``: colour, and depth when the
-   input has it) are opened (eroded, then dilated back: the one-pixel seams along fitted outlines go,
-   a small object's blob stays whole) and split into connected components (OpenCV); the largest with
-   at least ``min_area`` pixels is the proposal;
+   input has it; for a model whose anchors read cast shadows, ``anchor_shade_min``, not those either) are
+   opened (eroded, then dilated back: the one-pixel seams along fitted outlines go, a small object's blob
+   stays whole) and split into connected components (OpenCV); the largest with at least ``min_area``
+   pixels is the proposal;
 2. the slot that explains least (``prismonet.model.prune``: fewer than ``rule.min_gain`` pixels that the
-   others do not) is the one moved; a scene without such a slot is left alone;
+   others do not) is the one moved; a scene without such a slot is left alone, or, with ``replace_least``,
+   the slot that explains the fewest pixels alone is tried there instead (for scenes with more objects
+   than slots, or a slot spent on half an object);
 3. the slot is put where an object resting on the ground would show that component: the ray through
    the component's centroid meets the plane ``z = ground + s``, and the scale ``s`` is the one whose
    disc covers the component's area at that depth (a fixed point, ``PLACE_ITERATIONS`` steps); each
@@ -38,9 +41,9 @@ from prismonet.geometry.camera import pixel_grid, unproject
 from prismonet.geometry.transforms import transform_points
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
-from prismonet.model.prune import prune_keep
+from prismonet.model.prune import prune_keep, unexplained_without
 from prismonet.model.stopping import StopRule
-from prismonet.model.unexplained import largest_region
+from prismonet.model.unexplained import largest_region, shaded
 from prismonet.render import SceneParams, composite, render_objects
 from prismonet.render.renderer import shade_objects
 
@@ -77,6 +80,9 @@ class ReseedConfig:
     on_objects: bool = False
     """Also try each proposal resting on the slot surface the composition shows under it, not only on the
     ground (for stacked objects; twice the trials where a slot is under the component)."""
+    replace_least: bool = False
+    """A scene with no idle slot left tries its proposal with the slot that explains the fewest pixels alone
+    (the score test still decides, so the swap is kept only where the scene then fits better)."""
 
     def __post_init__(self) -> None:
         if self.rounds < 0:
@@ -87,6 +93,8 @@ class ReseedConfig:
             raise ValueError(f"reseed: the cycles (--reseed-cycles) must be >= 1, got {self.cycles}")
         if self.on_objects and self.rounds == 0:
             raise ValueError("reseed: --reseed-on-objects needs re-seeding rounds (--reseed R, R >= 1)")
+        if self.replace_least and self.rounds == 0:
+            raise ValueError("reseed: --reseed-replace needs re-seeding rounds (--reseed R, R >= 1)")
         if self.min_area < 1 or self.open < 0:
             raise ValueError(f"reseed: min_area must be >= 1 and open >= 0, got {self.min_area} and {self.open}")
 
@@ -187,6 +195,7 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
     obj_depth, obj_mask, obj_color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
     B, N = params.scale.shape
     rows = torch.arange(B)
+    shade_min = getattr(model.cfg, "anchor_shade_min", None)
 
     def scored(d, m, c):
         comp = composite(d, m, c, bg, bg_depth)
@@ -200,13 +209,18 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
     for _ in range(cfg.rounds):
         current = replace(out, latents=SceneLatents(params, bg), composite=comp, obj_depth=obj_depth,
                           obj_mask=obj_mask, obj_color=obj_color)
-        idle = ~prune_keep(cfg.rule, current, batch.rgb, depth_in)
+        kept = prune_keep(cfg.rule, current, batch.rgb, depth_in)
+        idle = ~kept
         unexplained = cfg.rule.unexplained(batch.rgb, depth_in, comp.image, torch.minimum(comp.depth, bg_depth), eroded=False)
+        if shade_min is not None:  # what the model's anchors read as a cast shadow is not proposed either
+            unexplained &= ~shaded(batch.rgb, comp.image, shade_min, model.cfg.anchor_shade_tol)
         region, found = largest_region(unexplained, cfg.open, cfg.min_area, exclude=tried)
-        go = found & idle.any(1)
+        go = found & (idle.any(1) | cfg.replace_least)
         if not go.any():
             break
         k = idle.float().argmax(1)  # the first idle slot of each scene
+        if cfg.replace_least and not bool(idle[go].any(1).all()):
+            k = torch.where(idle.any(1), k, least_useful(cfg.rule, current, batch.rgb, depth_in, kept))
         area = region.flatten(1).sum(1).to(batch.rgb.dtype).clamp_min(1)
         uv = torch.stack([(region * xs).flatten(1).sum(1), (region * ys).flatten(1).sum(1)], -1) / area[:, None]
         supports = [(ground_z, go)]
@@ -252,6 +266,16 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
         best, comp = scored(obj_depth, obj_mask, obj_color)
     return ModelOutput(SceneLatents(params, bg), comp, obj_depth, obj_mask, obj_color, bg_depth, None,
                        slot_steps=out.slot_steps)
+
+
+def least_useful(rule: StopRule, out: ModelOutput, image: torch.Tensor, depth: torch.Tensor | None,
+                 kept: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` per scene the slot among ``kept (B, N)`` whose removal leaves the fewest more pixels
+    unexplained (``prismonet.model.prune``'s measure; ties: the lowest index)."""
+    N = kept.shape[1]
+    counts = unexplained_without(rule, out, image, depth, kept)
+    gain = (counts[:, :N] - counts[:, N:]).float()
+    return torch.where(kept, gain, torch.full_like(gain, float("inf"))).argmin(1)
 
 
 def grow_slots(out: ModelOutput, extra: int, far_depth: float) -> ModelOutput:
