@@ -1,6 +1,14 @@
+import os
+
 import numpy as np
 import pytest
 import torch
+
+# A script a test starts in a subprocess (its one-line refusals) would add the adaptive thread count's line to stderr
+# when other processes load the machine (prismonet.threads.use_free_cores); a fixed count keeps its stderr to what the
+# test reads. The thread tests unset it where they test the adaptive count.
+if not os.environ.get("PRISMONET_THREADS"):
+    os.environ["PRISMONET_THREADS"] = str(torch.get_num_threads())
 
 
 @pytest.fixture(scope="session")
