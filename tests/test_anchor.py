@@ -80,6 +80,22 @@ def test_a_shadow_counts_as_explained_with_shade_min():
     assert model.anchor_rule().shade_min == 0.5 and model.anchor_rule().shade_tol == 0.03
 
 
+def test_shadows_are_none_in_a_grey_image_with_gray_tol():
+    """``AnchorRule.shadows``, which re-seeding also reads: an even darkening to 0.6 of the ground is a shadow in a
+    colour image; in a grey image it is one only without ``gray_tol`` (with it, every change there is an object)."""
+    ground = torch.tensor([0.6, 0.55, 0.5])
+    comp = ground.view(1, 3, 1, 1).repeat(2, 1, 4, 4)
+    comp[1] = 0.55  # image 1: grey
+    image = comp.clone()
+    image[:, :, :2] *= 0.6
+    colour_only = AnchorRule(shade_min=0.5)
+    both = AnchorRule(shade_min=0.5, gray_tol=0.1)
+    for rule, want in ((colour_only, [True, True]), (both, [True, False])):
+        s = rule.shadows(image, comp)
+        assert [bool(s[b, :2].all()) for b in range(2)] == want and not s[:, 2:].any()
+    assert not AnchorRule().shadows(image, comp).any()
+
+
 def test_grey_images_are_read_by_luminance_with_gray_tol():
     """``AnchorRule.gray_tol``: in a grey image, a patch 0.08 brighter than the grey ground is unexplained at 0.06 and
     at 0.15 would not be; a grey patch darkened to 0.7 of the ground is an object, not a shadow; a composition of another

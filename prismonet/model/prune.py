@@ -53,6 +53,17 @@ def unexplained_without(rule: StopRule, out, image: torch.Tensor, depth: torch.T
     return torch.stack(counts + [base], 1)
 
 
+def explained_alone(rule: StopRule, out, image: torch.Tensor, depth: torch.Tensor | None,
+                    keep: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` float: the pixels that each slot in ``keep (B, N)`` explains and the others kept do not (what the
+    composition without it leaves unexplained more); ``inf`` for the slots not in ``keep``."""
+    N = keep.shape[1]
+    counts = unexplained_without(rule, out, image, depth, keep)
+    gain = (counts[:, :N] - counts[:, N:]).float()
+    gain[~keep] = float("inf")
+    return gain
+
+
 def prune_keep(rule: StopRule, out, image: torch.Tensor, depth: torch.Tensor | None) -> torch.Tensor:
     """``(B, N)`` bool: the slots of ``out`` (a ``ModelOutput``) that pruning keeps (see the module
     docstring). A slot that is already inactive or has no pixel is not kept."""
@@ -62,10 +73,7 @@ def prune_keep(rule: StopRule, out, image: torch.Tensor, depth: torch.Tensor | N
         keep = keep & active
     N = keep.shape[1]
     for _ in range(N):
-        counts = unexplained_without(rule, out, image, depth, keep)
-        gain = (counts[:, :N] - counts[:, N:]).float()  # pixels that each kept slot explains alone
-        gain[~keep] = float("inf")
-        least, k = gain.min(1)
+        least, k = explained_alone(rule, out, image, depth, keep).min(1)
         drop = least < rule.min_gain
         if not drop.any():
             break

@@ -6,7 +6,7 @@ so it cannot carry a hidden slot to an object nobody covers. This step does that
 geometry: in each round, per scene,
 
 1. the pixels the composition does not explain (``StopRule.unexplained``: colour, and depth when the
-   input has it; for a model whose anchors read cast shadows, ``anchor_shade_min``, not those either) are
+   input has it; for a model whose anchors read cast shadows, ``AnchorRule.shadows``, not those either) are
    opened (eroded, then dilated back: the one-pixel seams along fitted outlines go, a small object's blob
    stays whole) and split into connected components (OpenCV); the largest with at least ``min_area``
    pixels is the proposal;
@@ -41,9 +41,9 @@ from prismonet.geometry.camera import pixel_grid, unproject
 from prismonet.geometry.transforms import transform_points
 from prismonet.model.fit_score import fit_score
 from prismonet.model.prismonet import ModelOutput, SceneLatents
-from prismonet.model.prune import prune_keep, unexplained_without
+from prismonet.model.prune import explained_alone, prune_keep
 from prismonet.model.stopping import StopRule
-from prismonet.model.unexplained import largest_region, shaded
+from prismonet.model.unexplained import largest_region
 from prismonet.render import SceneParams, composite, render_objects
 from prismonet.render.renderer import shade_objects
 
@@ -195,7 +195,7 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
     obj_depth, obj_mask, obj_color = out.obj_depth.clone(), out.obj_mask.clone(), out.obj_color.clone()
     B, N = params.scale.shape
     rows = torch.arange(B)
-    shade_min = getattr(model.cfg, "anchor_shade_min", None)
+    anchors = model.anchor_rule() if model.cfg.anchor_shade_min is not None else None  # it reads cast shadows
 
     def scored(d, m, c):
         comp = composite(d, m, c, bg, bg_depth)
@@ -212,8 +212,8 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
         kept = prune_keep(cfg.rule, current, batch.rgb, depth_in)
         idle = ~kept
         unexplained = cfg.rule.unexplained(batch.rgb, depth_in, comp.image, torch.minimum(comp.depth, bg_depth), eroded=False)
-        if shade_min is not None:  # what the model's anchors read as a cast shadow is not proposed either
-            unexplained &= ~shaded(batch.rgb, comp.image, shade_min, model.cfg.anchor_shade_tol)
+        if anchors is not None:  # what the model's anchors read as a cast shadow is not proposed either
+            unexplained &= ~anchors.shadows(batch.rgb, comp.image)
         region, found = largest_region(unexplained, cfg.open, cfg.min_area, exclude=tried)
         go = found & (idle.any(1) | cfg.replace_least)
         if not go.any():
@@ -272,10 +272,7 @@ def least_useful(rule: StopRule, out: ModelOutput, image: torch.Tensor, depth: t
                  kept: torch.Tensor) -> torch.Tensor:
     """``(B,)`` per scene the slot among ``kept (B, N)`` whose removal leaves the fewest more pixels
     unexplained (``prismonet.model.prune``'s measure; ties: the lowest index)."""
-    N = kept.shape[1]
-    counts = unexplained_without(rule, out, image, depth, kept)
-    gain = (counts[:, :N] - counts[:, N:]).float()
-    return torch.where(kept, gain, torch.full_like(gain, float("inf"))).argmin(1)
+    return explained_alone(rule, out, image, depth, kept).argmin(1)
 
 
 def grow_slots(out: ModelOutput, extra: int, far_depth: float) -> ModelOutput:

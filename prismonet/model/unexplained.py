@@ -116,14 +116,25 @@ class AnchorRule:
             raise ValueError(f"anchor rule: shade_min must be in (0, {SHADE_MAX}) and shade_tol > 0, "
                              f"got {self.shade_min} and {self.shade_tol}")
 
-    def unexplained(self, image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
-        """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses (shadows excepted with
-        ``shade_min``; in grey images, with ``gray_tol``, the pixels whose luminance it misses)."""
-        bad = color_unexplained(image, comp_image, self.color_tol)
-        if self.shade_min is not None:
-            bad = bad & ~shaded(image, comp_image, self.shade_min, self.shade_tol)
+    def shadows(self, image: torch.Tensor, comp_image: torch.Tensor, gray: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, H, W)`` bool: the pixels this rule reads as a cast shadow on the composition ``comp_image`` (``shaded``
+        by ``shade_min``): none without it, and none in a grey image with ``gray_tol`` (there every change is an even
+        darkening). ``gray``: ``is_gray(image)``, when the caller has it already."""
+        if self.shade_min is None:
+            return torch.zeros_like(image[:, 0], dtype=torch.bool)
+        s = shaded(image, comp_image, self.shade_min, self.shade_tol)
         if self.gray_tol is not None:
-            gray = is_gray(image)
+            s = s & ~(is_gray(image) if gray is None else gray)[:, None, None]
+        return s
+
+    def unexplained(self, image: torch.Tensor, comp_image: torch.Tensor) -> torch.Tensor:
+        """``(B, H, W)`` bool: the pixels whose colour the composition ``comp_image`` misses (``shadows`` excepted;
+        in grey images, with ``gray_tol``, the pixels whose luminance it misses)."""
+        bad = color_unexplained(image, comp_image, self.color_tol)
+        gray = is_gray(image) if self.gray_tol is not None else None
+        if self.shade_min is not None:
+            bad = bad & ~self.shadows(image, comp_image, gray)
+        if gray is not None:
             if bool(gray.any()):
                 dark_or_bright = (luma(comp_image) - luma(image)).abs() > self.gray_tol
                 bad = torch.where(gray[:, None, None], dark_or_bright, bad)
