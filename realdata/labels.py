@@ -75,3 +75,26 @@ def load_labels(folder: str | Path) -> list[LabelledPhoto]:
     if dup:
         raise LabelError(f"{folder}: several labels for the photo(s) {', '.join(dup)}")
     return labels
+
+
+def pool_labels(folders: dict[str, str | Path], out: str | Path) -> int:
+    """Copy the labelled photos of several folders into one, ``out``: each ``{prefix: folder}``'s photos go to
+    ``out/photos/PREFIX_NAME`` and its labels to ``out/PREFIX_LABEL.json``, pointing at them (the photos copied, not
+    linked, so the pooled folder stands alone). Every label is read first (``load_labels``: a bad folder is refused
+    before anything is written). Returns the number of labelled photos pooled."""
+    import json
+    import shutil
+
+    from prismonet.files import write_atomic
+
+    pools = {prefix: load_labels(folder) for prefix, folder in folders.items()}
+    out = Path(out)
+    (out / "photos").mkdir(parents=True, exist_ok=True)
+    for prefix, labels in pools.items():
+        for lab in labels:
+            name = f"{prefix}_{lab.photo.name}"
+            shutil.copyfile(lab.photo, out / "photos" / name)
+            d = json.loads(lab.label_file.read_text())
+            d["photo"] = f"photos/{name}"
+            write_atomic(out / f"{prefix}_{lab.label_file.name}", json.dumps(d, indent=1))
+    return sum(len(labels) for labels in pools.values())

@@ -9,7 +9,7 @@ import pytest
 
 from realdata.boxes import box_iou, mask_box, view_to_photo
 from realdata.evaluate import box_ap_ar
-from realdata.labels import LabelError, load_label, load_labels
+from realdata.labels import LabelError, load_label, load_labels, pool_labels
 
 LABELS = Path(__file__).resolve().parents[1] / "realdata" / "samples" / "labels"
 
@@ -68,6 +68,26 @@ def test_bad_labels_are_refused(tmp_path):
         load_labels(tmp_path / "empty")
     with pytest.raises(LabelError, match="no such folder"):
         load_labels(tmp_path / "missing")
+
+
+def test_pooled_labels_point_at_their_own_copies(tmp_path):
+    """Two folders whose photos share a name pool into one: each photo copied under its prefix, each label pointing at
+    its copy with the same boxes; a bad folder is refused before anything is written."""
+    for prefix, box, byte in (("a", [1, 2, 3, 4], b"A"), ("b", [5, 6, 7, 8], b"B")):
+        (tmp_path / prefix / "photos").mkdir(parents=True)
+        (tmp_path / prefix / "photos" / "scene_0000.png").write_bytes(byte)
+        (tmp_path / prefix / "scene_0000.json").write_text(json.dumps(
+            {"photo": "photos/scene_0000.png", "elevation_deg": 40, "objects": [{"box": box, "colour": "red", "kind": "cube"}]}))
+    assert pool_labels({"a": tmp_path / "a", "b": tmp_path / "b"}, tmp_path / "pooled") == 2
+    labels = load_labels(tmp_path / "pooled")
+    assert [lab.label_file.name for lab in labels] == ["a_scene_0000.json", "b_scene_0000.json"]
+    assert [lab.photo.name for lab in labels] == ["a_scene_0000.png", "b_scene_0000.png"]
+    assert [lab.photo.read_bytes() for lab in labels] == [b"A", b"B"]
+    assert [lab.boxes for lab in labels] == [((1.0, 2.0, 3.0, 4.0),), ((5.0, 6.0, 7.0, 8.0),)]
+    assert all(lab.elevation_deg == 40 and lab.photo.parent == tmp_path / "pooled" / "photos" for lab in labels)
+    with pytest.raises(LabelError, match="no such folder"):
+        pool_labels({"a": tmp_path / "a", "c": tmp_path / "missing"}, tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
 
 
 def test_real_evaluate_on_the_shipped_photos(tmp_path, capsys):
