@@ -14,7 +14,8 @@ from prismonet.geometry.camera import intrinsics_matrix, look_at, project
 from prismonet.model.fit_score import fit_score
 from prismonet.model.inference import InferenceConfig, infer
 from prismonet.model.io import load_model
-from prismonet.model.reseed import ReseedConfig, least_useful, place_on_ground, ray_at_height, reseed, support_height
+from prismonet.model.reseed import (ReseedConfig, _fit_textures, least_useful, place_on_ground, ray_at_height, reseed,
+                                    support_height)
 from prismonet.model.unexplained import largest_components, opening
 from prismonet.model.prune import prune_keep
 from prismonet.model.stopping import StopRule, keep_slots
@@ -301,3 +302,30 @@ def test_cast_shadows_are_not_proposed_for_a_model_that_reads_them(decoded):
     finally:
         model.cfg = kept_cfg
     assert torch.equal(ruled.composite.image, out.composite.image)
+
+
+def test_texture_trials_fitted_together_take_the_steps_each_takes_alone(decoded):
+    """Re-seeding fits its trials' texture latents in one batch: each must come out as it does fitted alone (the same
+    Adam steps on its own mean loss), a trial with no hit in the region must keep its latent exactly, and the fit must
+    move the latents it can (else the comparison says nothing)."""
+    from prismonet.render import SceneParams, render_objects
+
+    model, batch, out = decoded
+    p = out.latents.params
+    B, _, H, W = batch.rgb.shape
+    trials = []
+    for k in range(2):
+        sl = slice(k, k + 1)
+        one = SceneParams(p.z_sh[:, sl], p.z_tex[:, sl] + 0.3, p.position[:, sl], p.cos_sin[:, sl], p.scale[:, sl],
+                          None if p.axis is None else p.axis[:, sl], None if p.active is None else p.active[:, sl])
+        trials.append((one, render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, model.render_settings())))
+    region = torch.zeros(B, H, W, dtype=torch.bool)
+    region[:, : H // 2] = True  # the upper half: some hits inside, some not
+    together = _fit_textures(model, trials, batch.rgb, region)
+    alone = [_fit_textures(model, [t], batch.rgb, region)[0] for t in trials]
+    for (one, _), a, b in zip(trials, together, alone):
+        assert a.shape == one.z_tex.shape
+        assert torch.allclose(a, b, atol=1e-5), (a - b).abs().max()
+        assert (a - one.z_tex).abs().amax() > 1e-2  # fitted
+    nowhere = _fit_textures(model, trials, batch.rgb, torch.zeros_like(region))
+    assert all(torch.equal(z, one.z_tex) for z, (one, _) in zip(nowhere, trials))

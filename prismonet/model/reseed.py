@@ -27,7 +27,8 @@ geometry: in each round, per scene,
    the next largest.
 
 The pose search afterwards (``prismonet.model.search``) fits the new slots as it fits the others.
-Each round costs one single-slot render per shape category and a few texture-field evaluations.
+Each round costs one single-slot render per shape category and trial scale, and ``TEXTURE_STEPS`` texture-field
+steps for all of a round's trials at once (``_fit_textures``: independent fits in one batch).
 """
 
 from __future__ import annotations
@@ -153,25 +154,37 @@ def category_medoids(prior) -> torch.Tensor:
     return torch.stack(out)
 
 
-def _fit_texture(model, one: SceneParams, obj, target: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
-    """``(B, 1, D_tex)``: the texture latent of the single slot ``one`` fitted to ``target (B, 3, H, W)`` at
-    its hits inside ``region (B, H, W)`` bool (scenes without such hits keep theirs)."""
-    B, _, H, W = obj.depth.shape
-    pix = obj.hit_pix
-    b = obj.hit_slot  # K = 1: the slot index is the scene
-    inside = region.reshape(B, -1)[b, pix]
-    if not inside.any():
-        return one.z_tex
-    b, pix, x = b[inside], pix[inside], obj.hit_x_obj[inside]
-    want = target.permute(0, 2, 3, 1).reshape(B, H * W, 3)[b, pix]
-    z = one.z_tex[:, 0].detach().clone().requires_grad_(True)
+def _fit_textures(model, trials: list, target: torch.Tensor, region: torch.Tensor) -> list[torch.Tensor]:
+    """Per trial ``(one, obj)`` (a single-slot ``SceneParams`` and its render): its ``(B, 1, D_tex)`` texture latent
+    fitted to ``target (B, 3, H, W)`` at its hits inside ``region (B, H, W)`` bool (scenes without such hits keep
+    theirs). The trials are independent and fitted together: each trial's loss is the mean over its own hits, and
+    Adam acts per element, so every latent takes the steps it would take fitted alone (up to the order of sums)."""
+    B, _, H, W = trials[0][1].depth.shape
+    want_all = target.permute(0, 2, 3, 1).reshape(B, H * W, 3)
+    rows, xs, wants, weights = [], [], [], []
+    for t, (one, obj) in enumerate(trials):
+        b, pix = obj.hit_slot, obj.hit_pix  # K = 1: the slot index is the scene
+        inside = region.reshape(B, -1)[b, pix]
+        n = int(inside.sum())
+        if n == 0:
+            continue
+        rows.append(t * B + b[inside])
+        xs.append(obj.hit_x_obj[inside])
+        wants.append(want_all[b[inside], pix[inside]])
+        weights.append(torch.full((n,), 1.0 / n, dtype=target.dtype))
+    z0 = torch.cat([one.z_tex[:, 0] for one, _ in trials]).detach()  # (T * B, D_tex)
+    if not rows:
+        return [one.z_tex for one, _ in trials]
+    row, x, want, weight = torch.cat(rows), torch.cat(xs), torch.cat(wants), torch.cat(weights)
+    z = z0.clone().requires_grad_(True)
     opt = torch.optim.Adam([z], lr=TEXTURE_LR)
     with torch.enable_grad():
         for _ in range(TEXTURE_STEPS):
             opt.zero_grad(set_to_none=True)
-            ((model.color_fn(z[b], x) - want) ** 2).sum(1).mean().backward()
+            (((model.color_fn(z[row], x) - want) ** 2).sum(1) * weight).sum().backward()
             opt.step()
-    return z.detach()[:, None]
+    fitted = z.detach().reshape(len(trials), B, 1, -1)
+    return [fitted[t] for t in range(len(trials))]
 
 
 @torch.no_grad()
@@ -235,14 +248,16 @@ def reseed(model, out: ModelOutput, batch, cfg: ReseedConfig = ReseedConfig(), u
         round_best = best.clone()
         for base, live in supports:
             _, placed = place_on_ground(uv, area, batch.K, batch.T_world_cam, base, model.cfg.scale_range)
+            trials = []
             for z_sh, mult in itertools.product(shapes, TRIAL_SCALES):
                 scale = (placed * mult).clamp(lo, hi)
                 position = ray_at_height(uv, batch.K, batch.T_world_cam, base + scale)
                 one = SceneParams(z_sh.expand(B, -1)[:, None].to(params.z_sh.dtype), params.z_tex[rows, k][:, None],
                                   position[:, None], upright, scale[:, None],
                                   None if params.axis is None else params.axis[rows, k][:, None], live[:, None])
-                geo = render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, settings)
-                one = replace(one, z_tex=_fit_texture(model, one, geo, batch.rgb, region))
+                trials.append((one, render_objects(model.sdf_fn, None, one, batch.K, batch.T_world_cam, H, W, settings)))
+            for (one, geo), z_tex in zip(trials, _fit_textures(model, trials, batch.rgb, region)):
+                one = replace(one, z_tex=z_tex)
                 color = shade_objects(model.color_fn, one, geo)  # the same hits, coloured
                 d, m, c = obj_depth.clone(), obj_mask.clone(), obj_color.clone()
                 d[rows, k], m[rows, k], c[rows, k] = geo.depth[:, 0], geo.mask[:, 0], color[:, 0]
