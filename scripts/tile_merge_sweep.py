@@ -2,7 +2,7 @@
 
     python3 scripts/tile_merge_sweep.py runs/s52/crowd_val_t2 data/crowded_photos/val --iou 0.2,0.3,0.5 --cover 0.5,0.6,0.8
 
-Prints box AP0.5 / AR0.5 over all photos, and the share of photos whose count is within 2 of the truth, per pair.
+Prints box AP0.5 / AR0.5 over all photos, and the photos whose count is within 2 of the objects in view, per setting.
 ``--whole-first PX,...`` (a run with ``--tile-below``, which read every photo whole first, into ``RUN/whole``): in the
 photos read in tiles, the whole reading's detections of at least PX visible pixels join the merge first, as whole
 detections that no tile detection can displace (their scores, view pixels, scaled to a tile's pixels by the squared
@@ -46,35 +46,35 @@ def main() -> None:
     shapes = {lab.photo: read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2] for lab in labels}
     print("| merge IoU | cover | whole first | box AP0.5 | box AR0.5 | found / true | count within ±2 |\n|---|---|---|---|---|---|---|")
     for iou, cover, first in itertools.product([float(v) for v in args.iou.split(",")], [float(v) for v in args.cover.split(",")], firsts):
-            scores, hits, n_true, found, close = [], [], 0, 0, 0
-            for lab in labels:
-                rec = summary[lab.photo.resolve()]
-                boxes, sc, cut = [], [], []
-                if first is not None and "tiles" in rec:  # the whole reading's large detections, taken before any tile's
-                    w = whole[lab.photo.resolve()]
-                    ratio = (w["prepare"]["crop_box"][2] / rec["tiles"][0]["prepare"]["crop_box"][2]) ** 2
-                    big = [k for k, v in enumerate(w["detections"]["scores"]) if v >= first]
-                    boxes += [w["detections"]["boxes"][k] for k in big]
-                    sc += [w["detections"]["scores"][k] * ratio for k in big]
-                    cut += [False] * len(big)
-                n_first = len(boxes)
-                for v in rec.get("tiles", [rec]):  # a photo read whole: its own detections
-                    boxes += v["detections"]["boxes"]
-                    sc += v["detections"]["scores"]
-                    cut += v["detections"]["cut"]
-                rank = np.array(sc) + np.where(np.arange(len(sc)) < n_first, np.inf, 0)  # the whole ones first
-                kept = (merge_detections(np.array(boxes).reshape(-1, 4), np.nan_to_num(rank, posinf=1e12), np.array(cut, bool), iou, cover)
-                        if "tiles" in rec else range(len(boxes)))  # a photo read whole is not merged (as in the pipeline)
-                det = {"boxes": [boxes[k] for k in kept], "scores": [sc[k] for k in kept]}
-                m = photo_measures(lab, det, rec["outlines"], shapes[lab.photo])
-                scores += m["scores"]
-                hits += m["hits"]
-                n_true += m["true_objects"]
-                found += m["objects_found"]
-                close += abs(m["objects_found"] - m["true_in_view"]) <= 2
-            a, r = ap_ar(np.array(scores), np.array(hits, bool), n_true)
-            print(f"| {iou:g} | {cover:g} | {'-' if first is None else f'{first:g}'} | {a:.3f} | {r:.3f} | {found} / {n_true} | "
-                  f"{close} of {len(labels)} |")
+        scores, hits, n_true, found, close = [], [], 0, 0, 0
+        for lab in labels:
+            rec = summary[lab.photo.resolve()]
+            boxes, sc, cut = [], [], []
+            if first is not None and "tiles" in rec:  # the whole reading's large detections, taken before any tile's
+                w = whole[lab.photo.resolve()]
+                ratio = (w["prepare"]["crop_box"][2] / rec["tiles"][0]["prepare"]["crop_box"][2]) ** 2
+                big = [k for k, v in enumerate(w["detections"]["scores"]) if v >= first]
+                boxes += [w["detections"]["boxes"][k] for k in big]
+                sc += [w["detections"]["scores"][k] * ratio for k in big]
+                cut += [False] * len(big)
+            n_first = len(boxes)
+            for v in rec.get("tiles", [rec]):  # a photo read whole: its own detections
+                boxes += v["detections"]["boxes"]
+                sc += v["detections"]["scores"]
+                cut += v["detections"]["cut"]
+            rank = np.array(sc) + np.where(np.arange(len(sc)) < n_first, 1e12, 0.0)  # the whole ones first
+            kept = (merge_detections(np.array(boxes).reshape(-1, 4), rank, np.array(cut, bool), iou, cover)
+                    if "tiles" in rec else range(len(boxes)))  # a photo read whole is not merged (as in the pipeline)
+            det = {"boxes": [boxes[k] for k in kept], "scores": [sc[k] for k in kept]}
+            m = photo_measures(lab, det, rec["outlines"], shapes[lab.photo])
+            scores += m["scores"]
+            hits += m["hits"]
+            n_true += m["true_objects"]
+            found += m["objects_found"]
+            close += abs(m["objects_found"] - m["true_in_view"]) <= 2
+        a, r = ap_ar(np.array(scores), np.array(hits, bool), n_true)
+        print(f"| {iou:g} | {cover:g} | {'-' if first is None else f'{first:g}'} | {a:.3f} | {r:.3f} | {found} / {n_true} | "
+              f"{close} of {len(labels)} |")
 
 
 if __name__ == "__main__":

@@ -172,11 +172,10 @@ def _fit_textures(model, trials: list, target: torch.Tensor, region: torch.Tenso
         xs.append(obj.hit_x_obj[inside])
         wants.append(want_all[b[inside], pix[inside]])
         weights.append(torch.full((n,), 1.0 / n, dtype=target.dtype))
-    z0 = torch.cat([one.z_tex[:, 0] for one, _ in trials]).detach()  # (T * B, D_tex)
     if not rows:
         return [one.z_tex for one, _ in trials]
     row, x, want, weight = torch.cat(rows), torch.cat(xs), torch.cat(wants), torch.cat(weights)
-    z = z0.clone().requires_grad_(True)
+    z = torch.cat([one.z_tex[:, 0] for one, _ in trials]).detach().clone().requires_grad_(True)  # (T * B, D_tex)
     opt = torch.optim.Adam([z], lr=TEXTURE_LR)
     with torch.enable_grad():
         for _ in range(TEXTURE_STEPS):
