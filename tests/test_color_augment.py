@@ -244,3 +244,52 @@ def test_refiner_fit_with_recoloured_scenes(shipped, tmp_path, capsys):
                        RefinerFitConfig(**{**cfg.__dict__, "steps": 40}), progress=False)
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [0, 30, 40] and more["steps"] == 40
+
+
+def test_gray_scenes_share_is_drawn_once_per_scene():
+    """``GrayScenes(share=...)``: each scene is grey or not by its index and seed alone, whatever batch asks for it; the
+    grey ones are exactly their luminance, the others untouched; about the share of them are grey."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.data.gray import GrayScenes, is_gray, to_gray
+
+    ds = SceneDataset(shipped_samples(), split="test")
+    n = len(ds)
+    g = GrayScenes(ds, share=0.5, seed=3)
+    which = [g.grey(i) for i in range(n)]
+    assert 0 < sum(which) < n
+    a, b = g.batch(list(range(n))), g.batch(list(reversed(range(n))))
+    assert torch.equal(a.rgb, b.rgb.flip(0))
+    plain = ds.batch(list(range(n)))
+    assert is_gray(a.rgb).tolist() == which
+    for i in range(n):
+        assert torch.equal(a.rgb[i], to_gray(plain.rgb[i : i + 1])[0] if which[i] else plain.rgb[i])
+    assert [GrayScenes(ds, share=0.5, seed=4).grey(i) for i in range(n)] != which or n < 4
+    with pytest.raises(ValueError, match="share must be in"):
+        GrayScenes(ds, share=0.0)
+
+
+def test_refiner_fit_with_grey_scenes(shipped, tmp_path):
+    """``RefinerFitConfig.gray_share``: refused with a texture or colour term and with a cache made elsewhere; a fit with
+    it runs, learns and records the share."""
+    import json
+
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import DistillError
+    from prismonet.model.refiner_fit import RefinerFitConfig, encoder_cache, fit_refiner, with_refiner
+    from test_refiner import _shifted_targets
+
+    for bad in (dict(texture=0.1), dict(texture=0.0, color=0.5), dict(texture=0.0, gray_share=1.5)):
+        with pytest.raises(ValueError, match="gray_share must be in"):
+            RefinerFitConfig(**{"gray_share": 0.5, **bad})
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30, texture=0.0, gray_share=0.5)
+    with pytest.raises(DistillError, match="made from the grey scenes"):
+        fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "c", cfg, progress=False,
+                    cache=encoder_cache(with_refiner(model), ds, 12, progress=False))
+    s = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    assert s["held_out_end"] < s["held_out_start"]
+    assert json.loads((tmp_path / "run" / "model.json").read_text())["refiner_fit"]["fit"]["gray_share"] == 0.5

@@ -59,7 +59,7 @@ def cmd_refiner(args) -> int:
     device = training_device(args.device)
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
                            texture=args.texture, color=args.color, true_poses=args.true_poses,
-                           fill_hidden=args.fill_hidden, recolor=args.recolor)  # validate first
+                           fill_hidden=args.fill_hidden, recolor=args.recolor, gray_share=args.gray_share)  # validate first
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
@@ -185,6 +185,9 @@ def _add_refiner_parser(sub) -> None:
     r.add_argument("--recolor", action="store_true",
                    help="the refiner sees every scene with new object colours, drawn once per scene from --seed, found "
                         "from depth alone (so it cannot tell a seen model by its colour); needs --texture 0")
+    r.add_argument("--gray-share", type=float, default=0.0, metavar="S",
+                   help="the refiner sees this share of the scenes grey (drawn once per scene from --seed), as a greyscale "
+                        "photo shows them; the targets stay the search's fits to the colour scenes; needs --texture 0")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

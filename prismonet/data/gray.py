@@ -38,10 +38,21 @@ def to_gray(rgb: torch.Tensor, which: torch.Tensor | None = None) -> torch.Tenso
 
 
 class GrayScenes:
-    """A view of a ``SceneDataset`` whose images are grey; everything else (depth, labels, cameras) as it is."""
+    """A view of a ``SceneDataset`` whose images are grey; everything else (depth, labels, cameras) as it is.
+    ``share`` < 1: only that share of the scenes, each drawn once from ``(seed, index)``, so that a scene reads the
+    same wherever and however often it is asked for (fits that cache a model's decoding, ``refiner_fit``)."""
 
-    def __init__(self, ds) -> None:
-        self.ds = ds
+    def __init__(self, ds, share: float = 1.0, seed: int = 0) -> None:
+        if not 0 < share <= 1:
+            raise ValueError(f"grey scenes: share must be in (0, 1], got {share}")
+        self.ds, self.share, self.seed = ds, share, seed
+
+    def grey(self, index: int) -> bool:
+        """Whether scene ``index`` is shown grey."""
+        if self.share >= 1:
+            return True
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + int(index))
+        return bool(torch.rand((), generator=g) < self.share)
 
     def __getattr__(self, name):
         return getattr(self.ds, name)
@@ -51,4 +62,5 @@ class GrayScenes:
 
     def batch(self, indices):
         b = self.ds.batch(indices)
-        return replace(b, rgb=to_gray(b.rgb))
+        which = None if self.share >= 1 else torch.tensor([self.grey(i) for i in indices])
+        return replace(b, rgb=to_gray(b.rgb, which))

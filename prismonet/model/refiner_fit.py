@@ -68,6 +68,11 @@ class RefinerFitConfig:
     drawn once per scene from ``seed``), the encoder's cached decoding included, so that it cannot tell a seen model by
     its colour (EVALUATION.md, sessions 73-74). The targets' poses and shapes do not depend on colour; their texture
     latents do, so ``texture`` and ``color`` must be 0."""
+    gray_share: float = 0.0
+    """> 0: the refiner sees this share of the training scenes grey (``prismonet.data.gray.GrayScenes``, drawn once per
+    scene from ``seed``), the encoder's cached decoding included, as a greyscale photo shows them; the targets stay the
+    search's fits to the colour scenes. Their texture latents are colours a grey scene does not show, so ``texture``
+    and ``color`` must be 0."""
 
     def __post_init__(self) -> None:
         if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0:
@@ -78,6 +83,9 @@ class RefinerFitConfig:
         if self.recolor and (self.texture > 0 or self.color > 0):
             raise ValueError("refiner fit: recolor needs texture = 0 and color = 0 (the targets' texture latents are "
                              f"the scenes' own colours), got {self.texture}, {self.color}")
+        if not 0 <= self.gray_share <= 1 or (self.gray_share > 0 and (self.texture > 0 or self.color > 0)):
+            raise ValueError("refiner fit: gray_share must be in [0, 1], and with it texture = 0 and color = 0 (a grey scene "
+                             f"does not show the targets' colours), got {self.gray_share}, {self.texture}, {self.color}")
         if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
             raise ValueError(f"refiner fit: weight_decay, texture and color must be >= 0, got {self.weight_decay}, {self.texture}, {self.color}")
 
@@ -226,7 +234,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
     # the options added later are recorded only when on, so runs made before them resume
-    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor") and not v)}
+    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share") and not v)}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
@@ -242,6 +250,12 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
             raise DistillError("recolor: the encoder's cache must be made from the recoloured scenes, so it is made here")
 
         ds = RecoloredScenes(ds, model.cfg.far_depth, seed=cfg.seed)
+    if cfg.gray_share > 0:
+        from prismonet.data.gray import GrayScenes
+
+        if cache is not None:
+            raise DistillError("gray_share: the encoder's cache must be made from the grey scenes, so it is made here")
+        ds = GrayScenes(ds, cfg.gray_share, seed=cfg.seed)
     ckpt = out / "checkpoint.safetensors"
     model.to(device)
     weights = DistillWeights(background=0.0, texture=cfg.texture)
