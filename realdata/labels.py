@@ -83,7 +83,6 @@ def pool_labels(folders: dict[str, str | Path], out: str | Path) -> int:
     linked, so the pooled folder stands alone). Every label is read first (``load_labels``: a bad folder is refused
     before anything is written). Returns the number of labelled photos pooled."""
     import json
-    import shutil
 
     from prismonet.files import write_atomic
 
@@ -93,7 +92,7 @@ def pool_labels(folders: dict[str, str | Path], out: str | Path) -> int:
     for prefix, labels in pools.items():
         for lab in labels:
             name = f"{prefix}_{lab.photo.name}"
-            shutil.copyfile(lab.photo, out / "photos" / name)
+            write_atomic(out / "photos" / name, lab.photo.read_bytes())  # an interrupted copy never stands as a photo
             d = json.loads(lab.label_file.read_text())
             d["photo"] = f"photos/{name}"
             write_atomic(out / f"{prefix}_{lab.label_file.name}", json.dumps(d, indent=1))

@@ -293,3 +293,13 @@ def test_refiner_fit_with_grey_scenes(shipped, tmp_path):
     s = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
     assert s["held_out_end"] < s["held_out_start"]
     assert json.loads((tmp_path / "run" / "model.json").read_text())["refiner_fit"]["fit"]["gray_share"] == 0.5
+
+
+def test_refiner_cli_refuses_a_bad_gray_share_in_one_line(tmp_path, capsys):
+    from prismonet.assets import shipped_samples
+    from prismonet.cli import main
+
+    assert main(["refiner", "shipped", str(shipped_samples()), "--targets", str(tmp_path / "t"), "--out",
+                 str(tmp_path / "x"), "--texture", "0", "--gray-share", "1.5"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gray_share must be in [0, 1]" in err[0] and not (tmp_path / "x").exists()
