@@ -303,3 +303,67 @@ def test_refiner_cli_refuses_a_bad_gray_share_in_one_line(tmp_path, capsys):
                  str(tmp_path / "x"), "--texture", "0", "--gray-share", "1.5"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gray_share must be in [0, 1]" in err[0] and not (tmp_path / "x").exists()
+
+
+def test_distill_gray_fits_the_grey_images_and_says_so(tmp_path):
+    """``distill --gray``: the targets are the same steps run on the grey scenes (``fit_targets`` on ``GrayScenes``,
+    equal to the last bit), not the colour ones, and ``targets.json`` records it (``DistillTargets.gray``)."""
+    import json
+
+    from prismonet.assets import shipped_samples
+    from prismonet.checkpoint import load_checkpoint
+    from prismonet.cli import main
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.data.gray import GrayScenes
+    from prismonet.model.distill import DistillTargets
+    from prismonet.model.distill_fit import fit_targets
+    from prismonet.model.inference import InferenceConfig
+    from prismonet.model.io import load_model
+
+    data = str(shipped_samples())
+    flags = ["--split", "test", "--count", "3", "--batch", "3", "--search", "0", "--fit-color", "5", "--quiet"]
+    assert main(["distill", "shipped", data, "--out", str(tmp_path / "g"), "--gray", *flags]) == 0
+    assert main(["distill", "shipped", data, "--out", str(tmp_path / "c"), *flags]) == 0
+    assert json.loads((tmp_path / "g" / "targets.json").read_text())["gray"] is True
+    assert DistillTargets(tmp_path / "g", 3).gray and not DistillTargets(tmp_path / "c", 3).gray
+    model = load_model("shipped")[0]
+    fit_targets(model, GrayScenes(SceneDataset(data, split="test")), tmp_path / "ref", 3,
+                InferenceConfig.of(fit_color=5), batch_size=3, progress=False)
+    g, c, ref = (load_checkpoint(tmp_path / d / "chunk_00000.safetensors")[0] for d in ("g", "c", "ref"))
+    assert torch.equal(g["z_tex"], ref["z_tex"]) and torch.equal(g["bg_color"], ref["bg_color"])
+    assert not torch.equal(g["z_tex"], c["z_tex"])
+    bg = g["bg_color"]
+    assert torch.allclose(bg, bg.mean(1, keepdim=True).expand_as(bg), atol=0.02)  # a grey scene's background is grey
+
+
+def test_refiner_fit_on_grey_targets(shipped, tmp_path, capsys):
+    """Targets fitted on grey scenes: the fit must be set up for them (``gray_targets``, with ``gray_share`` 1) and may
+    then regress textures; the command line sets it from ``targets.json`` and refuses another grey share."""
+    import json
+
+    from prismonet.assets import shipped_samples
+    from prismonet.cli import main
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import DistillError
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+    from test_refiner import _shifted_targets
+
+    with pytest.raises(ValueError, match="need gray_share 1"):
+        RefinerFitConfig(gray_targets=True, gray_share=0.5)
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    info = json.loads((tmp_path / "t" / "targets.json").read_text())
+    (tmp_path / "t" / "targets.json").write_text(json.dumps({**info, "gray": True}))
+    base = dict(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30)
+    with pytest.raises(DistillError, match="fitted on grey scenes"):
+        fit_refiner(with_refiner(model), ds, tmp_path / "t", tmp_path / "x", RefinerFitConfig(**base), progress=False)
+    cfg = RefinerFitConfig(**base, texture=0.1, gray_share=1.0, gray_targets=True)
+    s = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    assert s["held_out_end"] < s["held_out_start"]
+    fit = json.loads((tmp_path / "run" / "model.json").read_text())["refiner_fit"]["fit"]
+    assert fit["gray_targets"] is True and fit["gray_share"] == 1.0 and fit["texture"] == 0.1
+    assert main(["refiner", "shipped", str(shipped_samples()), "--split", "test", "--targets", str(tmp_path / "t"),
+                 "--out", str(tmp_path / "y"), "--gray-share", "0.5"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "fitted on grey scenes" in err[0] and not (tmp_path / "y").exists()

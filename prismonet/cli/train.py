@@ -42,6 +42,10 @@ def cmd_distill(args) -> int:
     check_compatible(model, info, ds)
     count = len(ds) if args.count is None else args.count
     meta = {"model": str(args.checkpoint), "model_digest": weights_digest(model), "data": str(args.data), "split": args.split}
+    if args.gray:  # recorded only when on, so targets made before it still resume
+        from prismonet.data.gray import GrayScenes
+
+        ds, meta["gray"] = GrayScenes(ds), True
     s = fit_targets(model, ds, args.out, count, cfg, batch_size=args.batch, progress=not args.quiet, meta=meta,
                     loss_cfg=training_loss_config(info), true_poses=args.true_poses, device=device)
     extra = f"; fit score {s['score_before']:.4f} -> {s['score_after']:.4f} on the chunks made now" if "score_before" in s else ""
@@ -57,9 +61,15 @@ def cmd_refiner(args) -> int:
     from prismonet.model.trainer import training_device
 
     device = training_device(args.device)
+    info_path = Path(args.targets) / "targets.json"  # without it fit_refiner says what is missing
+    meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
+    gray = bool(meta.get("gray", False))  # targets fitted on grey scenes: every scene is shown grey
+    if gray and args.gray_share not in (0.0, 1.0):
+        raise ValueError(f"{args.targets}: fitted on grey scenes, so the refiner sees every scene grey; --gray-share "
+                         f"{args.gray_share} cannot be used with them")
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
-                           texture=args.texture, color=args.color, true_poses=args.true_poses,
-                           fill_hidden=args.fill_hidden, recolor=args.recolor, gray_share=args.gray_share)  # validate first
+                           texture=args.texture, color=args.color, true_poses=args.true_poses, fill_hidden=args.fill_hidden,
+                           recolor=args.recolor, gray_share=1.0 if gray else args.gray_share, gray_targets=gray)  # validate first
     base, info = load_model(args.checkpoint)
     if base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
@@ -69,8 +79,6 @@ def cmd_refiner(args) -> int:
     check_compatible(base, info, ds)
     from prismonet.model.distill_fit import weights_digest
 
-    info_path = Path(args.targets) / "targets.json"  # without it fit_refiner says what is missing
-    meta = json.loads(info_path.read_text()) if info_path.is_file() else {}
     maker = base if args.targets_from is None else load_model(args.targets_from)[0]
     maker_name = args.checkpoint if args.targets_from is None else args.targets_from
     if meta and meta.get("model_digest") != weights_digest(maker) and not _made_by_refined(meta, weights_digest(maker)):
@@ -142,6 +150,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--true-poses", action="store_true",
                    help="+ 3D pose variant (supervised): start from the true poses and search only shapes (--search-shapes) and colours")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA if there is one); a folder's chunks may come from either (same settings)")
+    p.add_argument("--gray", action="store_true",
+                   help="fit the scenes as a greyscale camera shows them (their luminance, depth as it is), so that the "
+                        "targets follow the grey decoding's slots: for a refiner of grey photos (`refiner` reads this)")
     p.add_argument("--quiet", action="store_true")
     add_inference_args(p, search=3, fit_color=50)
     p.set_defaults(func=cmd_distill, outputs=[("out", "dir")])
@@ -187,7 +198,8 @@ def _add_refiner_parser(sub) -> None:
                         "from depth alone (so it cannot tell a seen model by its colour); needs --texture 0")
     r.add_argument("--gray-share", type=float, default=0.0, metavar="S",
                    help="the refiner sees this share of the scenes grey (drawn once per scene from --seed), as a greyscale "
-                        "photo shows them; the targets stay the search's fits to the colour scenes; needs --texture 0")
+                        "photo shows them; the targets stay the search's fits to the colour scenes; needs --texture 0 (targets made by "
+                        "`distill --gray` set it to 1 and allow a texture weight)")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

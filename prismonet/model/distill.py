@@ -90,6 +90,8 @@ class DistillTargets:
                 del parts[k]
         self.t = {k: torch.cat(v) for k, v in parts.items()}
         self.count = len(self.t["scale"])
+        self.gray = bool(info.get("gray", False))
+        """Fitted on the scenes' grey images (``prismonet distill --gray``)."""
 
     def lookup(self, indices: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """Targets of scenes ``indices`` (zeros where there are none) and a ``(B,)`` float mask of those that have them."""

@@ -72,7 +72,11 @@ class RefinerFitConfig:
     """> 0: the refiner sees this share of the training scenes grey (``prismonet.data.gray.GrayScenes``, drawn once per
     scene from ``seed``), the encoder's cached decoding included, as a greyscale photo shows them; the targets stay the
     search's fits to the colour scenes. Their texture latents are colours a grey scene does not show, so ``texture``
-    and ``color`` must be 0."""
+    and ``color`` must be 0 (unless ``gray_targets``)."""
+    gray_targets: bool = False
+    """The targets were fitted on the grey scenes themselves (``prismonet distill --gray``, ``DistillTargets.gray``): slot
+    k's target is what the grey decoding's slot k found, and its texture latent a grey fit. Needs ``gray_share`` 1;
+    ``texture`` and ``color`` may then be used."""
 
     def __post_init__(self) -> None:
         if self.steps <= 0 or self.batch_size <= 0 or self.lr <= 0 or self.holdout < 0 or self.checkpoint_every <= 0:
@@ -83,7 +87,9 @@ class RefinerFitConfig:
         if self.recolor and (self.texture > 0 or self.color > 0):
             raise ValueError("refiner fit: recolor needs texture = 0 and color = 0 (the targets' texture latents are "
                              f"the scenes' own colours), got {self.texture}, {self.color}")
-        if not 0 <= self.gray_share <= 1 or (self.gray_share > 0 and (self.texture > 0 or self.color > 0)):
+        if self.gray_targets and self.gray_share != 1:
+            raise ValueError(f"refiner fit: targets fitted on grey scenes need gray_share 1 (every scene grey), got {self.gray_share}")
+        if not 0 <= self.gray_share <= 1 or (self.gray_share > 0 and not self.gray_targets and (self.texture > 0 or self.color > 0)):
             raise ValueError("refiner fit: gray_share must be in [0, 1], and with it texture = 0 and color = 0 (a grey scene "
                              f"does not show the targets' colours), got {self.gray_share}, {self.texture}, {self.color}")
         if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
@@ -221,6 +227,9 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     if not model.cfg.refine_passes:
         raise DistillError("the model has no refiner (refine_passes 0): start from with_refiner(model)")
     targets = DistillTargets(targets_dir, model.cfg.num_slots)
+    if targets.gray != cfg.gray_targets:
+        raise DistillError(f"{targets_dir}: targets fitted on {'grey' if targets.gray else 'colour'} scenes, but the fit "
+                           f"was set up for {'grey' if cfg.gray_targets else 'colour'} ones (RefinerFitConfig.gray_targets)")
     if model.cfg.refiner_keep and VISIBLE not in targets.t:
         raise DistillError(f"{targets_dir}: these targets do not say which slots the fit shows, so a refiner that keeps "
                            "or drops slots has nothing to learn it from; make them again with `prismonet distill`")
@@ -234,7 +243,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     out.mkdir(parents=True, exist_ok=True)
     # ``steps`` may change when a run resumes (to train longer); nothing else may
     # the options added later are recorded only when on, so runs made before them resume
-    fit = {k: v for k, v in asdict(cfg).items() if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share") and not v)}
+    fit = {k: v for k, v in asdict(cfg).items()
+           if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share", "gray_targets") and not v)}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
