@@ -101,7 +101,8 @@ def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[i
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
-                    elevation=None, label_elevations: bool = False, tiling=None, highlights=HIGHLIGHT_PERCENTILE) -> dict:
+                    elevation=None, label_elevations: bool = False, tiling=None, highlights=HIGHLIGHT_PERCENTILE,
+                    gray_tint: str = "off") -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
     ``elevation`` (degrees, see ``reconstruct_photos``); or with ``label_elevations`` each label's
@@ -115,7 +116,7 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
                               elevation=elevation, elevation_hints=hints or None, tiling=tiling, meshes=False,
-                              highlights=highlights)
+                              highlights=highlights, gray_tint=gray_tint)
     import cv2
 
     rows = []
@@ -125,16 +126,45 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
         m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"],
                  reading=f"{len(rec['tiles'])} tiles" if "tiles" in rec else "whole")
         rows.append(m)
-    ap, ar = ap_ar(np.concatenate([r["scores"] for r in rows]), np.concatenate([r["hits"] for r in rows]).astype(bool),
-                   sum(r["true_objects"] for r in rows))
-    overall = {"photos": len(rows), "true_objects": sum(r["true_objects"] for r in rows), "true_in_view": sum(r["true_in_view"] for r in rows),
-               "objects_found": sum(r["objects_found"] for r in rows), "box_AP0.5": ap, "box_AR0.5": ar,
-               "foreground_IoU": float(np.mean([r["foreground_IoU"] for r in rows])),
-               "PSNR": float(np.mean([list(r["psnr"].values())[-1] for r in rows])),
-               "count_within_slack": sum(abs(r["objects_found"] - r["true_in_view"]) <= COUNT_SLACK for r in rows)}
-    result = {"photos": rows, "overall": overall}
+    result = {"photos": rows, "overall": overall_measures(rows)}
     write_atomic(Path(out) / "real_evaluation.json", json.dumps(result, indent=1))
     return result
+
+
+def overall_measures(rows: list[dict]) -> dict:
+    """The overall row of ``photo_measures`` rows (each with its ``psnr`` readings): AP and AR over all photos' boxes
+    pooled, counts summed, foreground IoU and the last PSNR reading averaged over the photos."""
+    ap, ar = ap_ar(np.concatenate([np.asarray(r["scores"], np.float64) for r in rows]),
+                   np.concatenate([np.asarray(r["hits"], bool) for r in rows]), sum(r["true_objects"] for r in rows))
+    return {"photos": len(rows), "true_objects": sum(r["true_objects"] for r in rows), "true_in_view": sum(r["true_in_view"] for r in rows),
+            "objects_found": sum(r["objects_found"] for r in rows), "box_AP0.5": ap, "box_AR0.5": ar,
+            "foreground_IoU": float(np.mean([r["foreground_IoU"] for r in rows])),
+            "PSNR": float(np.mean([list(r["psnr"].values())[-1] for r in rows])),
+            "count_within_slack": sum(abs(r["objects_found"] - r["true_in_view"]) <= COUNT_SLACK for r in rows)}
+
+
+def merge_evaluations(parts: list[tuple[dict, set[str] | None]]) -> dict:
+    """One evaluation from several readings of the same labelled photos, each photo's row taken from one of them:
+    ``parts`` is ``[(result, stems), ...]`` (a ``real_evaluation.json`` and the photo stems to take from it; ``None``: the
+    photos no earlier part gave). Every photo must come from exactly one part; the overall row is computed again."""
+    rows: dict[str, dict] = {}
+    every: set[str] = set()
+    for result, stems in parts:
+        have = {Path(r["photo"]).stem: r for r in result["photos"]}
+        every |= set(have)
+        unknown = sorted((stems or set()) - set(have))
+        if unknown:
+            raise ValueError(f"photos not in that evaluation: {', '.join(unknown)}")
+        take = set(have) - set(rows) if stems is None else stems
+        twice = sorted(take & set(rows))
+        if twice:
+            raise ValueError(f"photos taken from two evaluations: {', '.join(twice)}")
+        rows.update({s: have[s] for s in take})
+    missing = sorted(every - set(rows))
+    if missing:
+        raise ValueError(f"photos no part gives: {', '.join(missing)}")
+    ordered = [rows[s] for s in sorted(rows)]
+    return {"photos": ordered, "overall": overall_measures(ordered)}
 
 
 def format_real_table(result: dict) -> str:

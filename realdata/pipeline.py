@@ -11,6 +11,7 @@ import torch
 from prismonet.files import write_image
 from realdata.color import (HIGHLIGHT_PERCENTILE, MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited,
                             spare_highlights, table_mapping)
+from realdata.gray_tint import TINTS, is_gray_view, tint_gray
 from realdata.illumination import flatten_light
 from realdata.io import PhotoError, load_photo
 from realdata.prepare import auto_table_box, crop, resize, table_region, undistort
@@ -23,7 +24,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
                    box: tuple[int, int, int, int] | None = None, normalize: str = "auto",
                    gain: tuple[float, float, float] | None = None, target=DEFAULT_TARGET,
                    view=None, metres_per_unit: float | None = None, own_camera: bool = False,
-                   tiling=None, highlights: float | None = HIGHLIGHT_PERCENTILE) -> list[dict]:
+                   tiling=None, highlights: float | None = HIGHLIGHT_PERCENTILE, gray_tint: str = "off") -> list[dict]:
     """Prepare photos into ``out`` (folder format, no depth). Returns one record per prepared image: per photo,
     or with ``tiles`` > 1 per tile.
 
@@ -47,6 +48,9 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         tiling: a ``realdata.tiles.TileConfig``, uncalibrated photos only: read the table region (or ``box``)
             as overlapping square tiles, each prepared as its own image named ``STEM_tNN``, with the colour
             mapping read off the whole region or off each tile.
+        gray_tint: ``"off"``, or for a greyscale photo a hue for what is lighter than its table (``"light"``) and also
+            for what is darker (``"both"``), after the colour mapping (``realdata.gray_tint``); colour photos are
+            unchanged.
     """
     from prismonet.data.folder import FOLDER_FORMAT, FOLDER_VERSION
 
@@ -54,6 +58,8 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
         raise ValueError(f"normalize: expected auto, flat, none or manual, got {normalize!r}")
     if normalize == "manual" and gain is None:
         raise ValueError("normalize=manual needs a gain (r,g,b)")
+    if gray_tint not in TINTS:
+        raise ValueError(f"gray_tint: expected {', '.join(TINTS)}, got {gray_tint!r}")
     tiles = 1 if tiling is None else tiling.tiles
     if (tiles > 1 or (tiling is not None and tiling.target_px)) and calibration is not None:
         raise ValueError("--tiles reads uncalibrated photos (each tile is seen by the training camera); a calibrated photo "
@@ -97,6 +103,8 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             if note:
                 placed["warnings"] = [*placed.get("warnings", []), note]
             view_img = mapping.apply(view_img)
+            if gray_tint != "off" and is_gray_view(view_img):
+                view_img, placed["gray_tint"] = tint_gray(view_img, gray_tint), gray_tint
             write_image(out / "rgb" / f"{name}.png", (np.clip(view_img, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
             if flat is not None:
                 placed["light_field"] = flat

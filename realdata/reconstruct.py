@@ -40,7 +40,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
                        elevation_hints: dict[str, float] | None = None, tiling=None, meshes: bool = True,
-                       highlights: float | None = HIGHLIGHT_PERCENTILE) -> list[dict]:
+                       highlights: float | None = HIGHLIGHT_PERCENTILE, gray_tint: str = "off") -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
     ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
 
@@ -61,7 +61,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
                                   inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
-                                  elevation_hints=elevation_hints, meshes=meshes, highlights=highlights)
+                                  elevation_hints=elevation_hints, meshes=meshes, highlights=highlights,
+                                  gray_tint=gray_tint)
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
@@ -89,7 +90,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
         shutil.rmtree(prepared)
     recs = prepare_photos(photos, prepared, net.cfg.image_size, calibration, box, normalize, gain,
                           view=(train_cam, train_ground), metres_per_unit=metres_per_unit, own_camera=own,
-                          tiling=tiling, highlights=highlights)
+                          tiling=tiling, highlights=highlights, gray_tint=gray_tint)
     tiles = 1 if tiling is None else tiling.tiles
     ds = SceneDataset(prepared)
     by_name = {r["name"]: r for r in recs}

@@ -131,3 +131,46 @@ def test_real_evaluate_hands_the_labels_elevations_to_a_camera_frame_model(tmp_p
     assert cams(r) == ["model's training camera (assumed)"] * 2
     r = evaluate_photos(labels, tmp_path / "c", "shipped", progress=False, label_elevations=True)
     assert cams(r) == ["model's training camera (assumed)"] * 2
+
+
+def _row(stem: str, scores, hits, true: int, found: int) -> dict:
+    return {"photo": f"/x/{stem}.png", "scores": scores, "hits": hits, "true_objects": true, "true_in_view": true,
+            "objects_found": found, "foreground_IoU": 0.5, "psnr": {"encoder": 20.0}, "box_AP0.5": 0.0, "box_AR0.5": 0.0}
+
+
+def test_merge_evaluations_takes_each_photo_from_one_reading(tmp_path):
+    """Two readings of photos a and b: a from the first, b from the second. The overall row is computed again, by hand:
+    boxes pooled by score (0.9 hit, 0.8 miss, 0.7 hit) over 3 true objects: AR 2/3, AP (1 + 2/3) / 3; a counted within
+    +-2, b (5 found for 1) not. A photo taken twice, one no reading gives, or one not in a reading is refused; the
+    command line writes the merged file."""
+    import json
+    import subprocess
+    import sys
+
+    from realdata.evaluate import merge_evaluations, overall_measures
+
+    one = {"photos": [_row("a", [0.9, 0.8], [True, False], 2, 2), _row("b", [0.5], [False], 1, 1)]}
+    two = {"photos": [_row("a", [0.1], [False], 2, 1), _row("b", [0.7, 0.1, 0.1, 0.1, 0.1], [True] + [False] * 4, 1, 5)]}
+    m = merge_evaluations([(one, {"a"}), (two, None)])
+    o = m["overall"]
+    assert [r["photo"] for r in m["photos"]] == ["/x/a.png", "/x/b.png"]
+    assert o["box_AR0.5"] == pytest.approx(2 / 3) and o["box_AP0.5"] == pytest.approx((1 + 2 / 3) / 3)
+    assert o["objects_found"] == 7 and o["count_within_slack"] == 1 and o == overall_measures(m["photos"])
+    assert merge_evaluations([(one, None)])["overall"] == overall_measures(one["photos"])
+    with pytest.raises(ValueError, match="taken from two"):
+        merge_evaluations([(one, None), (two, {"b"})])
+    with pytest.raises(ValueError, match="no part gives: b"):
+        merge_evaluations([(one, {"a"})])
+    with pytest.raises(ValueError, match="not in that evaluation: c"):
+        merge_evaluations([(one, {"c"}), (two, None)])
+    for name, res in (("one", one), ("two", two)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "real_evaluation.json").write_text(json.dumps(res))
+    script = Path(__file__).resolve().parents[1] / "scripts" / "merge_real_evaluations.py"
+    run = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "m"), f"{tmp_path / 'one'}:a", str(tmp_path / "two")],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert json.loads((tmp_path / "m" / "real_evaluation.json").read_text())["overall"] == pytest.approx(o)
+    bad = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "n"), str(tmp_path / "one"), f"{tmp_path / 'two'}:b"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "taken from two evaluations" in bad.stderr.strip().splitlines()[-1]

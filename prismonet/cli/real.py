@@ -54,7 +54,7 @@ def cmd_prepare(args) -> int:
     model, info = load_model(args.model)
     recs = prepare_photos(args.photos, args.out, args.size, args.camera, box, args.normalize, gain,
                           view=training_camera(model, info), metres_per_unit=args.unit, own_camera=args.own_camera,
-                          highlights=args.highlights)
+                          highlights=args.highlights, gray_tint=args.gray_tint)
     for r in recs:
         g = r["color_mapping"]["gain"]
         print(f"  {r['photo']}: {_placed(r)}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
@@ -70,7 +70,8 @@ def cmd_reconstruct(args) -> int:
     cfg = inference_config(args, has_depth=False)
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
-                              elevation=args.elevation, tiling=_tiling(args), highlights=args.highlights)
+                              elevation=args.elevation, tiling=_tiling(args), highlights=args.highlights,
+                              gray_tint=args.gray_tint)
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         if "tiles" in r:
@@ -95,7 +96,7 @@ def cmd_evaluate(args) -> int:
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
                              elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args),
-                             highlights=args.highlights)
+                             highlights=args.highlights, gray_tint=args.gray_tint)
     print(format_real_table(result))
     print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
@@ -137,6 +138,12 @@ def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
     p.add_argument("--highlights", type=_percentile, default=HIGHLIGHT_PERCENTILE, metavar="PCT|none",
                    help=f"with auto or flat: the percentile of the photo's brightness that the tone curve lands on 1 "
                         f"(default {HIGHLIGHT_PERCENTILE:g}); none: the plain gain, which clips what it lifts beyond 1")
+    from realdata.gray_tint import TINTS
+
+    p.add_argument("--gray-tint", default="off", choices=TINTS,
+                   help="a greyscale photo only: give what is lighter than the table a yellow hue (light), and what is darker "
+                        "a blue one too (both), before the model reads it: the colour-trained model takes a hueless region "
+                        "for the table (colour photos are unchanged; EVALUATION.md, session 85)")
 
 
 def add_parsers(sub) -> None:
