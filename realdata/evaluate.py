@@ -102,7 +102,7 @@ def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[i
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
                     elevation=None, label_elevations: bool = False, tiling=None, highlights=HIGHLIGHT_PERCENTILE,
-                    gray_tint: str = "off") -> dict:
+                    gray_tint: str = "off", gray_inference=None) -> dict:
     """Reconstruct every labelled photo into ``out`` and measure it; returns ``{"photos": [...], "overall": {...}}``
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
     ``elevation`` (degrees, see ``reconstruct_photos``); or with ``label_elevations`` each label's
@@ -116,7 +116,7 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     recs = reconstruct_photos([str(lab.photo) for lab in labels], out, model, calibration, box, normalize, gain, objects,
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
                               elevation=elevation, elevation_hints=hints or None, tiling=tiling, meshes=False,
-                              highlights=highlights, gray_tint=gray_tint)
+                              highlights=highlights, gray_tint=gray_tint, gray_inference=gray_inference)
     import cv2
 
     rows = []

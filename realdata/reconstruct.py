@@ -40,7 +40,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
                        elevation_hints: dict[str, float] | None = None, tiling=None, meshes: bool = True,
-                       highlights: float | None = HIGHLIGHT_PERCENTILE, gray_tint: str = "off") -> list[dict]:
+                       highlights: float | None = HIGHLIGHT_PERCENTILE, gray_tint: str = "off", gray_inference=None) -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
     ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
 
@@ -56,13 +56,17 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     e.g. about 80 for a photo taken from above. Only for models that take the camera as an input
     (``pose_frame = "camera"``); the others know one camera. ``elevation_hints`` (``{photo stem: degrees}``,
     e.g. the labels' ``elevation_deg``): used as ``elevation`` when that is not given and the model takes
-    the camera as an input, ignored otherwise."""
+    the camera as an input, ignored otherwise.
+
+    ``gray_tint`` (``realdata.gray_tint``): a hue for greyscale photos. ``gray_inference``: the ``InferenceConfig`` for the
+    views that tint changed (None: ``inference`` for every view), e.g. no test-time steps for greyscale photos while colour
+    ones take them (EVALUATION.md, session 85); each group is decoded in batches of its own."""
     if tiling is not None and tiling.reads_whole_first:
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
                                   inference=inference, progress=progress, metres_per_unit=metres_per_unit, elevation=elevation,
                                   elevation_hints=elevation_hints, meshes=meshes, highlights=highlights,
-                                  gray_tint=gray_tint)
+                                  gray_tint=gray_tint, gray_inference=gray_inference)
     from tqdm import tqdm
 
     from prismonet.data.dataset import SceneDataset
@@ -73,6 +77,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     from realdata.pipeline import prepare_photos
 
     cfg = (inference or InferenceConfig()).without_depth()  # a photo has no depth
+    gray_cfg = None if gray_inference is None else gray_inference.without_depth()
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
     prepared = out / "prepared"
@@ -98,10 +103,11 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     per_view.mkdir(parents=True, exist_ok=True)
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
-    results, shown = [], {}  # shown: each photo as uint8, loaded once for all its views' figures
+    by_index, shown = {}, {}  # shown: each photo as uint8, loaded once for all its views' figures
     bar = tqdm(total=len(ds), desc="reconstruct", unit="photo" if tiles == 1 else "tile", disable=not progress)
-    for start in range(0, len(ds), BATCH):
-        rows = list(range(start, min(start + BATCH, len(ds))))
+    tinted = [gray_cfg is not None and "gray_tint" in by_name[name] for name in ds.names]
+    groups = [(cfg, [i for i in range(len(ds)) if not tinted[i]]), (gray_cfg, [i for i in range(len(ds)) if tinted[i]])]
+    for view_cfg, rows in ((c, idx[s : s + BATCH]) for c, idx in groups for s in range(0, len(idx), BATCH)):
         b = ds.batch(rows)  # seen by the training camera: rectified to it, or assumed (as the paper's real photos)
         recs_b, elevs = [by_name[ds.names[i]] for i in rows], []
         for j, rec in enumerate(recs_b):
@@ -117,12 +123,13 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
             for j in range(len(psnr)):
                 psnr[j][step] = image_metrics(o.composite.image[j : j + 1].numpy(), b.rgb[j : j + 1].numpy())["PSNR"]
 
-        o = infer(net, b, cfg, loss_cfg, on_step=score)
+        o = infer(net, b, view_cfg, loss_cfg, on_step=score)
         for j, (i, rec, elev) in enumerate(zip(rows, recs_b, elevs)):
-            results.append(_view_record(net, o, b, j, ds.names[i], rec, _photo_u8(rec["photo"], shown), elev, psnr[j], per_view, fp,
-                                        cfg, min_pixels, mesh_format, resolution if meshes else None, asked))
+            by_index[i] = _view_record(net, o, b, j, ds.names[i], rec, _photo_u8(rec["photo"], shown), elev, psnr[j], per_view, fp,
+                                       view_cfg, min_pixels, mesh_format, resolution if meshes else None, asked)
         bar.update(len(rows))
     bar.close()
+    results = [by_index[i] for i in range(len(ds))]
     if tiles > 1:
         results = [_merged(photo, _photo_u8(photo, shown), [r for r in results if r["photo"] == photo], out, net,
                            resolution if meshes else None, mesh_format) for photo in dict.fromkeys(r["photo"] for r in results)]

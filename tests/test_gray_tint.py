@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -78,3 +80,39 @@ def test_real_cli_refuses_an_unknown_tint_in_one_line(tmp_path, capsys):
     assert main(["real", "prepare", str(tmp_path / "x.png"), "--out", str(tmp_path / "o"), "--gray-tint", "blue"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--gray-tint" in err[0] and not (tmp_path / "o").exists()
+
+
+def test_gray_views_take_their_own_inference(tmp_path):
+    """``reconstruct_photos(..., gray_inference=...)``: the tinted (greyscale) views are decoded with that config, the
+    colour ones with ``inference``; the records come back in the order a reading without it gives (decoded in two
+    groups, colour first, put back in order: "grey" sorts before "hue")."""
+    from prismonet.model.inference import InferenceConfig
+    from realdata.reconstruct import reconstruct_photos
+
+    gray = np.full((96, 96, 3), 120, np.uint8)
+    gray[30:60, 30:60] = 220
+    colour = gray.copy()
+    colour[30:60, 30:60] = (40, 60, 200)
+    cv2.imwrite(str(tmp_path / "grey.png"), gray)
+    cv2.imwrite(str(tmp_path / "hue.png"), colour)
+    steps = InferenceConfig.of(prune=True)
+    photos = [str(tmp_path / "grey.png"), str(tmp_path / "hue.png")]
+    plain = reconstruct_photos(photos, tmp_path / "plain", box=(0, 0, 96, 96), inference=steps, gray_tint="both",
+                               progress=False, meshes=False)
+    assert {r["inference"] == steps.without_depth().record() for r in plain} == {True}
+    recs = reconstruct_photos(photos, tmp_path / "mixed", box=(0, 0, 96, 96),
+                              inference=steps, gray_tint="both", gray_inference=InferenceConfig(), progress=False, meshes=False)
+    assert [r["photo"] for r in recs] == [r["photo"] for r in plain]
+    got = {Path(r["photo"]).stem: r["inference"] for r in recs}
+    assert got["grey"] == InferenceConfig().without_depth().record() and got["hue"] == steps.without_depth().record()
+    assert got["grey"] != got["hue"]
+    prep = {Path(r["photo"]).stem: r["prepare"] for r in recs}
+    assert prep["grey"]["gray_tint"] == "both" and "gray_tint" not in prep["hue"]
+
+
+def test_gray_no_steps_needs_a_tint_in_one_line(tmp_path, capsys):
+    from prismonet.cli import main
+
+    assert main(["real", "reconstruct", str(tmp_path / "x.png"), "--out", str(tmp_path / "o"), "--gray-no-steps"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--gray-no-steps" in err[0] and not (tmp_path / "o").exists()

@@ -71,7 +71,7 @@ def cmd_reconstruct(args) -> int:
     recs = reconstruct_photos(args.photos, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                               args.min_pixels, args.format, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
                               elevation=args.elevation, tiling=_tiling(args), highlights=args.highlights,
-                              gray_tint=args.gray_tint)
+                              gray_tint=args.gray_tint, gray_inference=_gray_inference(args))
     for r in recs:
         psnr = " -> ".join(f"{v:.1f}" for v in r["psnr"].values())
         if "tiles" in r:
@@ -84,7 +84,7 @@ def cmd_reconstruct(args) -> int:
                 x, y, z = obj["position_table_m"]
                 print(f"      object {obj['slot']}: at ({x:.3f}, {y:.3f}, {z:.3f}) m on the table, half-size {obj['scale_m']:.3f} m")
     _warn(recs)
-    print(f"wrote figures, latent scenes, meshes and summary.json to {args.out} ({cfg.describe()})")
+    print(f"wrote figures, latent scenes, meshes and summary.json to {args.out} ({cfg.describe()}{_gray_note(args)})")
     return 0
 
 
@@ -96,11 +96,28 @@ def cmd_evaluate(args) -> int:
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
                              elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args),
-                             highlights=args.highlights, gray_tint=args.gray_tint)
+                             highlights=args.highlights, gray_tint=args.gray_tint, gray_inference=_gray_inference(args))
     print(format_real_table(result))
-    print(f"({cfg.describe()}; boxes from the model's instance masks mapped back to the photos; "
+    print(f"({cfg.describe()}{_gray_note(args)}; boxes from the model's instance masks mapped back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
     return 0
+
+
+def _gray_inference(args):
+    """``--gray-no-steps``: the encoder alone for the views ``--gray-tint`` changed (None: the same steps for every view)."""
+    if not args.gray_no_steps:
+        return None
+    if args.gray_tint == "off":
+        raise ValueError("--gray-no-steps reads the views that --gray-tint changed: give --gray-tint light or both")
+    from prismonet.model.inference import InferenceConfig
+
+    return InferenceConfig()
+
+
+def _gray_note(args) -> str:
+    if args.gray_tint == "off":
+        return ""
+    return f"; greyscale photos tinted ({args.gray_tint})" + (" and read by the encoder alone" if args.gray_no_steps else "")
 
 
 def _percentile(text: str) -> float | None:
@@ -184,6 +201,9 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", help="calibration YAML; with a ground pose the photos are rectified to the model's view")
     p.add_argument("--objects", type=arg_int(1, 64), help="recurrent steps (default: as trained)")
     p.add_argument("--min-pixels", type=arg_int(0, 1 << 24), default=25, help="visible pixels for an object to count as found")
+    p.add_argument("--gray-no-steps", action="store_true",
+                   help="with --gray-tint: read the greyscale (tinted) photos with the encoder alone, the colour ones with the "
+                        "test-time steps given (the measured photo setting: EVALUATION.md, session 85)")
     p.add_argument("--elevation", type=arg_float(0.0, 89.0, positive=True), metavar="DEG",
                    help="uncalibrated photos: the camera's elevation above the table, by eye (about 80 from above); the "
                         "training camera is moved to it. Only models that take the camera as an input (e.g. a tabletop model); "
