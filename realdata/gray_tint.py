@@ -22,14 +22,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from prismonet.data.gray import LUMA
+from prismonet.data.gray import GRAY_SPREAD, LUMA
 from realdata.color import estimate_table_color
 
 TINTS = ("off", "light", "both")
 """``--gray-tint``: none; what is lighter than the table; that and what is darker."""
-GRAY_VIEW_SPREAD = 0.02
-"""A prepared view is grey when no pixel's channels differ by more than this (its colour mapping may scale the channels
-slightly differently: 5 / 255)."""
+GRAY_VIEW_SPREAD = GRAY_SPREAD
+"""A prepared view is grey when no pixel's channels differ by more than this: the model's own test
+(``prismonet.data.gray.is_gray``), so that the views tinted are those the model would read by luminance. The colour
+mapping keeps a grey photo exactly grey (its target, the training ground, is grey)."""
 LIGHT_FROM, LIGHT_RAMP, LIGHT_SATURATION = 1.1, 0.4, 0.6
 DARK_FROM, DARK_RAMP, DARK_SATURATION = 0.9, 0.3, 0.5
 

@@ -139,6 +139,28 @@ def test_the_distillation_search_makes_no_tensor_off_the_inputs_device(scenes):
     assert out.composite.image.device.type == "cpu" and torch.isfinite(out.composite.image).all()
 
 
+def test_reseeding_texture_fits_make_no_tensor_off_the_inputs_device():
+    """The same probe on re-seeding's texture fits (``reseed._fit_textures``: all of a round's trials in one batch), with a
+    trial that hits nothing beside one that hits."""
+    from prismonet.data.clevr import ClevrConfig, clevr_camera
+    from prismonet.model.io import load_model
+    from prismonet.model.reseed import _fit_textures
+    from prismonet.render import SceneParams
+    from prismonet.render.renderer import render_objects
+
+    model = load_model("clevr3_fc")[0].eval()
+    cam = clevr_camera(ClevrConfig(image_size=64))
+    K, T = cam.K[None], cam.T_world_cam[None]
+    one = lambda x: SceneParams(model.prior.latents[:1][None], torch.zeros(1, 1, model.cfg.tex_dim), torch.tensor([[[x, 0.0, 0.5]]]),  # noqa: E731
+                                torch.tensor([[[1.0, 0.0]]]), torch.tensor([[0.5]]))
+    trials = [(p, render_objects(model.sdf_fn, None, p, K, T, 64, 64)) for p in (one(0.0), one(40.0))]
+    target, region = torch.rand(1, 3, 64, 64), torch.ones(1, 64, 64, dtype=torch.bool)
+    with torch.device("meta"):
+        fitted = _fit_textures(model, trials, target, region)
+    assert [z.device.type for z in fitted] == ["cpu", "cpu"] and not torch.equal(fitted[0], trials[0][0].z_tex)
+    assert torch.equal(fitted[1], trials[1][0].z_tex)  # nothing hit: kept
+
+
 @pytest.mark.parametrize("command", [["distill"], ["refiner", "--targets", "t"]])
 def test_distill_and_refiner_on_cuda_without_it_is_one_clear_line(command, tmp_path, capsys):
     if torch.cuda.is_available():

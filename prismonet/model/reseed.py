@@ -146,7 +146,7 @@ def support_height(comp_depth: torch.Tensor, covered: torch.Tensor, region: torc
 def category_medoids(prior) -> torch.Tensor:
     """``(C, D_sh)``: per shape category of the prior, the training code nearest the category's mean."""
     codes = prior.latents.detach()
-    cats = torch.as_tensor(prior.category_ids)
+    cats = torch.as_tensor(prior.category_ids, device=codes.device)
     out = []
     for c in torch.unique(cats):
         sel = codes[cats == c]
@@ -171,7 +171,7 @@ def _fit_textures(model, trials: list, target: torch.Tensor, region: torch.Tenso
         rows.append(t * B + b[inside])
         xs.append(obj.hit_x_obj[inside])
         wants.append(want_all[b[inside], pix[inside]])
-        weights.append(torch.full((n,), 1.0 / n, dtype=target.dtype))
+        weights.append(torch.full((n,), 1.0 / n, dtype=target.dtype, device=target.device))
     if not rows:
         return [one.z_tex for one, _ in trials]
     row, x, want, weight = torch.cat(rows), torch.cat(xs), torch.cat(wants), torch.cat(weights)
