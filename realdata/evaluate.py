@@ -77,14 +77,21 @@ def _union_mask(boxes, shape) -> np.ndarray:
 
 def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[int, int]) -> dict:
     """The measures of one photo from its found objects (``detections``: ``boxes`` in photo pixels and ``scores``,
-    as ``realdata.reconstruct`` records them) and the outlines of the views that read it (one, or one per tile)."""
+    as ``realdata.reconstruct`` records them) and the outlines of the views that read it (one, or one per tile).
+
+    A label's ``ignore`` boxes (objects too small to label) take no part: a detection that matches no labelled box but
+    overlaps an ignore box by IoU >= 0.5 is neither a hit nor a false one, and is not counted as found (its box is kept
+    under ``ignored_boxes``); the ignore boxes' area is left out of the foreground IoU on both sides."""
     import cv2
 
     pred = np.array(detections["boxes"], np.float64).reshape(-1, 4)
     scores = np.array(detections["scores"], np.float64)
     truth = np.array(label.boxes).reshape(-1, 4)
+    ignore = np.array(getattr(label, "ignore", ()), np.float64).reshape(-1, 4)
     hits = box_hits(pred, scores, truth)
-    ap, ar = ap_ar(scores, hits, len(truth))
+    ignored = ~hits & (box_iou(pred, ignore).max(axis=1) >= IOU_THRESHOLD) if len(pred) and len(ignore) else np.zeros(len(pred), bool)
+    counted = ~ignored
+    ap, ar = ap_ar(scores[counted], hits[counted], len(truth))
     view = np.zeros(photo_shape, np.uint8)
     for outline in outlines:
         cv2.fillConvexPoly(view, np.round(np.asarray(outline)).astype(np.int32), 1)
@@ -92,11 +99,13 @@ def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[i
     centres = (truth[:, :2] + truth[:, 2:]) / 2
     in_view = sum(bool(view[min(int(cy), photo_shape[0] - 1), min(int(cx), photo_shape[1] - 1)]) for cx, cy in centres
                   if 0 <= cx < photo_shape[1] and 0 <= cy < photo_shape[0])
-    gt_fg, pr_fg = _union_mask(truth, photo_shape) & view, _union_mask(pred, photo_shape) & view
+    fg_view = view & ~_union_mask(ignore, photo_shape)
+    gt_fg, pr_fg = _union_mask(truth, photo_shape) & fg_view, _union_mask(pred[counted], photo_shape) & fg_view
     union = (gt_fg | pr_fg).sum()
-    return {"true_objects": len(truth), "true_in_view": int(in_view), "objects_found": len(pred),
+    return {"true_objects": len(truth), "true_in_view": int(in_view), "objects_found": int(counted.sum()),
             "box_AP0.5": ap, "box_AR0.5": ar, "foreground_IoU": float((gt_fg & pr_fg).sum() / union) if union else 1.0,
-            "boxes": pred.round(1).tolist(), "scores": scores.tolist(), "hits": hits.tolist()}
+            "boxes": pred[counted].round(1).tolist(), "scores": scores[counted].tolist(), "hits": hits[counted].tolist(),
+            "ignored_boxes": pred[ignored].round(1).tolist()}
 
 
 def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
@@ -107,7 +116,6 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
     (also ``out/real_evaluation.json``). Overall: AP and AR over all photos' boxes pooled, counts summed.
     ``elevation`` (degrees, see ``reconstruct_photos``); or with ``label_elevations`` each label's
     ``elevation_deg`` where it gives one (for models that take the camera as an input; ignored by others)."""
-    from prismonet.files import read_image
     from realdata.labels import load_labels
     from realdata.reconstruct import reconstruct_photos
 
@@ -117,7 +125,29 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
                               min_pixels, inference=inference, progress=progress, metres_per_unit=metres_per_unit,
                               elevation=elevation, elevation_hints=hints or None, tiling=tiling, meshes=False,
                               highlights=highlights, gray_tint=gray_tint, gray_inference=gray_inference)
+    return _measured(labels, recs, Path(out) / "real_evaluation.json")
+
+
+def rescore(out, labels_dir, dest=None) -> dict:
+    """Measure a finished ``real evaluate`` run in ``out`` again (its ``summary.json``: every detection before any
+    label's ``ignore`` boxes were applied) against the labels in ``labels_dir``, e.g. after they changed; no model is
+    run. Every labelled photo must be in the run. Writes ``dest`` (default ``out/real_evaluation.json``) and returns it."""
+    from prismonet.files import read_json
+    from realdata.labels import load_labels
+
+    recs = {Path(r["photo"]).stem: r for r in read_json(Path(out) / "summary.json", list)}
+    labels = load_labels(labels_dir)
+    missing = [lab.photo.name for lab in labels if lab.photo.stem not in recs]
+    if missing:
+        raise ValueError(f"{out}: the run did not read {', '.join(missing)}")
+    return _measured(labels, [recs[lab.photo.stem] for lab in labels], Path(out) / "real_evaluation.json" if dest is None else dest)
+
+
+def _measured(labels, recs: list[dict], dest) -> dict:
+    """``photo_measures`` of each label's reconstruction record, and the overall row, written to ``dest``."""
     import cv2
+
+    from prismonet.files import read_image
 
     rows = []
     for lab, rec in zip(labels, recs):
@@ -127,7 +157,7 @@ def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None
                  reading=f"{len(rec['tiles'])} tiles" if "tiles" in rec else "whole")
         rows.append(m)
     result = {"photos": rows, "overall": overall_measures(rows)}
-    write_atomic(Path(out) / "real_evaluation.json", json.dumps(result, indent=1))
+    write_atomic(Path(dest), json.dumps(result, indent=1))
     return result
 
 

@@ -14,8 +14,10 @@ what is nearly as light keep no hue:
   shadow rule cannot act there), and the model then reads the photo in colour, where the rule acts again on what the
   tint leaves grey.
 
-The constants were set once, before any reading (``runs/s85/rule_gray_tint.txt``), not tuned. Colour photos are not
-changed (``is_gray_view``).
+The ramps were set once, before any reading (``runs/s85/rule_gray_tint.txt``). The saturations were swept once on the
+grey validation stand-ins (0.4 / 0.8 light, 0.3 / 0.7 dark, against the first 0.6 / 0.5) and (0.8, 0.3) taken by a rule
+written before the sweep, confirmed on the grey test stand-ins once their labels stopped counting objects too small to
+label (EVALUATION.md, session 86). Colour photos are not changed (``is_gray_view``).
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ GRAY_VIEW_SPREAD = GRAY_SPREAD
 """A prepared view is grey when no pixel's channels differ by more than this: the model's own test
 (``prismonet.data.gray.is_gray``), so that the views tinted are those the model would read by luminance. The colour
 mapping keeps a grey photo exactly grey (its target, the training ground, is grey)."""
-LIGHT_FROM, LIGHT_RAMP, LIGHT_SATURATION = 1.1, 0.4, 0.6
-DARK_FROM, DARK_RAMP, DARK_SATURATION = 0.9, 0.3, 0.5
+LIGHT_FROM, LIGHT_RAMP, LIGHT_SATURATION = 1.1, 0.4, 0.8
+DARK_FROM, DARK_RAMP, DARK_SATURATION = 0.9, 0.3, 0.3
 
 
 def is_gray_view(image: np.ndarray) -> bool:

@@ -1,7 +1,9 @@
 """Labelled real photos: one JSON per photo, ``{"photo": PATH (relative to the JSON), "objects":
 [{"box": [x0, y0, x1, y1], "colour": WORD, "kind": WORD}, ...]}``, boxes in photo pixels (the
 outermost pixels' corners), and optionally ``"elevation_deg"``: the camera's elevation above the table,
-judged by eye (for uncalibrated photos and models that take the camera as an input).
+judged by eye (for uncalibrated photos and models that take the camera as an input), and ``"ignore": [[x0, y0, x1,
+y1], ...]``: boxes of visible objects too small to be labelled (a detection on one counts neither for nor against the
+model, as COCO's crowd regions; ``realdata.evaluate``).
 ``realdata/samples/labels/`` holds the shipped photos' labels."""
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ class LabelledPhoto:
     """``(colour, kind)`` per object."""
     elevation_deg: float | None = None
     """The camera's elevation above the table by eye, in (0, 90), if the label gives one."""
+    ignore: tuple[tuple[float, float, float, float], ...] = ()
+    """Boxes of visible objects too small to label: detections there are neither hits nor false ones."""
 
 
 def _box(value, where: str) -> tuple[float, float, float, float]:
@@ -55,10 +59,14 @@ def load_label(path: str | Path) -> LabelledPhoto:
             raise LabelError(f"{path}: object {i} is not a JSON object")
         boxes.append(_box(o.get("box"), f"{path}: object {i}"))
         words.append((str(o.get("colour", "")), str(o.get("kind", ""))))
+    ignore = d.get("ignore", [])
+    if not isinstance(ignore, list):
+        raise LabelError(f"{path}: ignore must be a list of boxes, got {ignore!r}")
+    ignore = tuple(_box(b, f"{path}: ignore box {i}") for i, b in enumerate(ignore))
     elev = d.get("elevation_deg")
     if elev is not None and not (isinstance(elev, (int, float)) and not isinstance(elev, bool) and 0 < elev < 90):
         raise LabelError(f"{path}: elevation_deg must be a number of degrees in (0, 90), got {elev!r}")
-    return LabelledPhoto(path, photo, tuple(boxes), tuple(words), None if elev is None else float(elev))
+    return LabelledPhoto(path, photo, tuple(boxes), tuple(words), None if elev is None else float(elev), ignore)
 
 
 def load_labels(folder: str | Path) -> list[LabelledPhoto]:

@@ -3,8 +3,9 @@
 The real-photo path (``prismonet real evaluate``) has five labelled photos and no validation set: nothing may be
 chosen on them. Synthetic scenes rendered larger than the model's input and more crowded than its training
 scenes stand in for them. Each becomes a PNG and a label with one box per object whose visible part is at least
-``--min-fraction`` of the image (boxes from the instance mask, the outermost pixels' corners, as the hand labels),
-and the camera's true elevation above the table (``elevation_deg``). ``--uneven S`` darkens and brightens each photo
+``--min-fraction`` of the image (boxes from the instance mask, the outermost pixels' corners, as the hand labels);
+every smaller visible object gets an ``ignore`` box (a detection there is neither a hit nor a false one: before
+session 86 these objects were simply left out, so finding them counted against the model and its count), and the camera's true elevation above the table (``elevation_deg``). ``--uneven S`` darkens and brightens each photo
 by a smooth field, as uneven light and lens vignetting do in real photos: a linear gradient of ±S in a random
 direction times a radial fall-off to 1 - S/2 in the corners (seeded per photo). ``--exposure LO,HI`` makes each photo
 darker or brighter by one factor, log-uniform in [LO, HI] (clipped), as a camera's exposure does. ``--ground-gray
@@ -37,14 +38,15 @@ def camera_elevation_deg(T_world_cam: np.ndarray) -> float:
     return math.degrees(math.asin(max(-1.0, min(1.0, -float(f[2]) / float(np.linalg.norm(f))))))
 
 
-def scene_label(instance: np.ndarray, min_fraction: float) -> list[list[float]]:
-    """Boxes ``[x0, y0, x1, y1]`` (pixel corners) of the objects with enough visible pixels."""
-    boxes = []
+def scene_label(instance: np.ndarray, min_fraction: float) -> tuple[list[list[float]], list[list[float]]]:
+    """Boxes ``[x0, y0, x1, y1]`` (pixel corners) of the visible objects: those with at least ``min_fraction`` of the
+    image, and the smaller ones (to be ignored)."""
+    boxes, small = [], []
     for k in np.unique(instance[instance > 0]):
         v, u = np.nonzero(instance == k)
-        if len(u) >= min_fraction * instance.size:
-            boxes.append([float(u.min()) - 0.5, float(v.min()) - 0.5, float(u.max()) + 0.5, float(v.max()) + 0.5])
-    return boxes
+        box = [float(u.min()) - 0.5, float(v.min()) - 0.5, float(u.max()) + 0.5, float(v.max()) + 0.5]
+        (boxes if len(u) >= min_fraction * instance.size else small).append(box)
+    return boxes, small
 
 
 def uneven_light(shape: tuple[int, int], strength: float, rng: np.random.Generator) -> np.ndarray:
@@ -99,11 +101,11 @@ def main() -> None:
             rgb = np.repeat((np.clip(rgb, 0, 1) @ np.array(LUMA))[..., None], 3, -1)
         rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
         cv2.imwrite(str(out / "photos" / f"scene_{i:04d}.png"), rgb[..., ::-1])
-        boxes = scene_label(b.instance[0].numpy(), args.min_fraction)
+        boxes, small = scene_label(b.instance[0].numpy(), args.min_fraction)
         counts.append(len(boxes))
         label = {"photo": f"photos/scene_{i:04d}.png", "source": f"{args.data} {args.split} scene {i}",
                  "elevation_deg": round(camera_elevation_deg(b.T_world_cam[0].double().numpy()), 2),
-                 "objects": [{"box": bx, "colour": "synthetic", "kind": "object"} for bx in boxes]}
+                 "objects": [{"box": bx, "colour": "synthetic", "kind": "object"} for bx in boxes], "ignore": small}
         (out / f"scene_{i:04d}.json").write_text(json.dumps(label, indent=1))
     print(f"wrote {n} labelled photos to {out}: {sum(counts)} objects, {min(counts)}-{max(counts)} per photo")
 

@@ -23,16 +23,16 @@ def _gray_view() -> np.ndarray:
 
 
 def test_tint_by_hand():
-    """Light: s = 0.6 * clip((r - 1.1) / 0.4, 0, 1), blue *= 1 - s; dark (``both``): s = 0.5 * clip((0.9 - r) / 0.3,
+    """Light: s = 0.8 * clip((r - 1.1) / 0.4, 0, 1), blue *= 1 - s; dark (``both``): s = 0.3 * clip((0.9 - r) / 0.3,
     0, 1), red and green *= 1 - s. The table and r within [0.9, 1.1] keep no hue."""
     img = _gray_view()
     light, both = tint_gray(img, "light"), tint_gray(img, "both")
-    assert np.allclose(light[4, 4], [0.8, 0.8, 0.8 * 0.4], atol=1e-6)  # r 1.6: s at its 0.6
+    assert np.allclose(light[4, 4], [0.8, 0.8, 0.8 * 0.2], atol=1e-6)  # r 1.6: s at its 0.8
     assert np.allclose(light[4, 22], 0.52, atol=1e-6)  # r 1.04: below the ramp
     assert np.allclose(light[22, 4], 0.3, atol=1e-6) and np.allclose(light[30, 30], 0.5, atol=1e-6)  # dark and table unchanged
     assert np.allclose(both[4, 4], light[4, 4], atol=1e-6)
-    assert np.allclose(both[22, 4], [0.15, 0.15, 0.3], atol=1e-6)  # r 0.6: s at its 0.5
-    s = 0.5 * (0.9 - 0.8) / 0.3  # r 0.8: a third of the way down the ramp
+    assert np.allclose(both[22, 4], [0.21, 0.21, 0.3], atol=1e-6)  # r 0.6: s at its 0.3
+    s = 0.3 * (0.9 - 0.8) / 0.3  # r 0.8: a third of the way down the ramp
     assert np.allclose(both[22, 22], [0.4 * (1 - s), 0.4 * (1 - s), 0.4], atol=1e-6)
     assert np.allclose(both[30, 30], 0.5, atol=1e-6)
     assert tint_gray(img, "off") is img

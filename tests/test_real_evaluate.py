@@ -174,3 +174,89 @@ def test_merge_evaluations_takes_each_photo_from_one_reading(tmp_path):
     bad = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "n"), str(tmp_path / "one"), f"{tmp_path / 'two'}:b"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "taken from two evaluations" in bad.stderr.strip().splitlines()[-1]
+
+
+def _ignore_label(tmp_path, ignore=((40, 0, 50, 10),)):
+    """A 100 x 60 photo labelled with one object at (0, 0, 10, 10) and ignore boxes (default one at (40, 0, 50, 10))."""
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "p.png"), np.zeros((60, 100, 3), np.uint8))
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps({"photo": "p.png", "objects": [{"box": [0, 0, 10, 10]}], "ignore": [list(b) for b in ignore]}))
+    return f
+
+
+def test_ignore_boxes_count_for_nothing(tmp_path):
+    """Three detections on a photo with one labelled object and one ignore box: on the object (score 3, a hit), on the
+    ignore box (score 2: neither hit nor false, not found) and on nothing (score 1, false). By hand: found 2, AP over
+    [hit, miss] = 1 at recall 1, AR 1; without the ignore box the same detections give found 3 and the same AP and AR
+    (the false one ranks last either way), and the middle one ranked first would cost precision. A detection on the
+    ignore box that matches the labelled object better is a hit (labels first). The ignore box's area is left out of the
+    foreground IoU on both sides. Bad ignore boxes are refused in one line."""
+    from realdata.evaluate import photo_measures
+
+    lab = load_label(_ignore_label(tmp_path))
+    assert lab.ignore == ((40.0, 0.0, 50.0, 10.0),)
+    outline = [[-0.5, -0.5], [99.5, -0.5], [99.5, 59.5], [-0.5, 59.5]]
+    det = {"boxes": [[0, 0, 10, 10], [41, 0, 50, 10], [70, 40, 80, 50]], "scores": [3.0, 2.0, 1.0]}
+    m = photo_measures(lab, det, [outline], (60, 100))
+    assert m["objects_found"] == 2 and m["hits"] == [True, False] and m["scores"] == [3.0, 1.0]
+    assert m["ignored_boxes"] == [[41.0, 0.0, 50.0, 10.0]] and m["box_AP0.5"] == 1.0 and m["box_AR0.5"] == 1.0
+    assert m["foreground_IoU"] == pytest.approx(100 / 200)  # the object, and the false box; the ignored box not at all
+    first = photo_measures(lab, {"boxes": det["boxes"], "scores": [2.0, 3.0, 1.0]}, [outline], (60, 100))
+    assert first["box_AP0.5"] == 1.0 and first["objects_found"] == 2  # ranked first, an ignored one costs nothing
+    plain = photo_measures(replace_ignore(lab, ()), {"boxes": det["boxes"], "scores": [2.0, 3.0, 1.0]}, [outline], (60, 100))
+    assert plain["objects_found"] == 3 and plain["box_AP0.5"] == pytest.approx(0.5) and plain["ignored_boxes"] == []
+    both = photo_measures(replace_ignore(lab, ((0, 0, 10, 10),)), {"boxes": [[0, 0, 10, 10]], "scores": [1.0]}, [outline], (60, 100))
+    assert both["hits"] == [True] and both["objects_found"] == 1
+    for ignore, words in (("x", "ignore must be a list"), ([[1, 2, 3]], "ignore box 0: box must be")):
+        f = tmp_path / "bad.json"
+        f.write_text(json.dumps({"photo": "p.png", "objects": [], "ignore": ignore}))
+        with pytest.raises(LabelError, match=words):
+            load_label(f)
+
+
+def replace_ignore(lab, ignore):
+    from dataclasses import replace
+
+    return replace(lab, ignore=tuple(tuple(float(v) for v in b) for b in ignore))
+
+
+def test_rescore_measures_a_finished_run_against_new_labels(tmp_path, capsys):
+    """A run's summary.json measured again: against labels with an ignore box the detection there drops out; the written
+    file and the command line's (`real evaluate --rescore`, no model run) agree; a photo the run did not read is refused."""
+    from prismonet.cli import main
+    from realdata.evaluate import photo_measures, rescore
+
+    (tmp_path / "labels").mkdir()
+    f = _ignore_label(tmp_path / "labels")
+    run = tmp_path / "run"
+    run.mkdir()
+    outline = [[-0.5, -0.5], [99.5, -0.5], [99.5, 59.5], [-0.5, 59.5]]
+    rec = {"photo": str(tmp_path / "labels" / "p.png"), "detections": {"boxes": [[0, 0, 10, 10], [40, 0, 50, 10]], "scores": [3.0, 2.0]},
+           "outlines": [outline], "psnr": {"encoder": 20.0}, "figure": "f.png", "camera": "assumed"}
+    (run / "summary.json").write_text(json.dumps([rec]))
+    r = rescore(run, tmp_path / "labels")
+    want = photo_measures(load_label(f), rec["detections"], [outline], (60, 100))
+    assert r["photos"][0]["objects_found"] == want["objects_found"] == 1 and r["photos"][0]["hits"] == want["hits"] == [True]
+    assert json.loads((run / "real_evaluation.json").read_text())["overall"] == r["overall"]
+    assert main(["real", "evaluate", str(tmp_path / "labels"), "--out", str(run), "--rescore"]) == 0
+    assert "| p.png | 1 (1) | 1 |" in capsys.readouterr().out
+    (run / "summary.json").write_text(json.dumps([{**rec, "photo": "/elsewhere/q.png"}]))
+    with pytest.raises(ValueError, match="did not read p.png"):
+        rescore(run, tmp_path / "labels")
+
+
+def test_standin_labels_ignore_the_small_objects():
+    """``scripts/labelled_photos.py``: an object of at least ``min_fraction`` of the image is labelled, a smaller
+    visible one becomes an ignore box (pixel corners, as the hand labels)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("labelled_photos", Path(__file__).resolve().parents[1] / "scripts" / "labelled_photos.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    inst = np.zeros((20, 20), np.int32)
+    inst[2:6, 3:8] = 1  # 20 px: 0.05 of the image
+    inst[10:12, 10:12] = 2  # 4 px: 0.01
+    boxes, small = mod.scene_label(inst, 0.02)
+    assert boxes == [[2.5, 1.5, 7.5, 5.5]] and small == [[9.5, 9.5, 11.5, 11.5]]

@@ -89,8 +89,12 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from realdata.evaluate import evaluate_photos, format_real_table
+    from realdata.evaluate import evaluate_photos, format_real_table, rescore
 
+    if args.rescore:
+        print(format_real_table(rescore(args.out, args.labels)))
+        print(f"(the run in {args.out} measured again against {args.labels}; no model was run; {args.out}/real_evaluation.json)")
+        return 0
     box, gain = box_and_gain(args)
     cfg = inference_config(args, has_depth=False)
     result = evaluate_photos(args.labels, args.out, args.model, args.camera, box, args.normalize, gain, args.objects,
@@ -191,6 +195,8 @@ def add_parsers(sub) -> None:
     _add_model_args(re)
     re.add_argument("--label-elevations", action="store_true",
                     help="see each photo from its label's elevation_deg (by eye; models that take the camera as an input)")
+    re.add_argument("--rescore", action="store_true",
+                    help="run no model: measure the run already in --out again against these labels (e.g. after they changed)")
     add_inference_args(re, depth=False)
     re.set_defaults(func=cmd_evaluate, outputs=[("out", "dir")])
 
