@@ -74,6 +74,21 @@ def test_prepare_tints_grey_photos_only(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_real_prepare_says_which_photos_it_tinted(tmp_path, capsys):
+    from prismonet.cli import main
+
+    gray = np.full((96, 96, 3), 120, np.uint8)
+    gray[20:40, 20:40] = 220
+    colour = gray.copy()
+    colour[60:80, 60:80] = (40, 60, 200)
+    cv2.imwrite(str(tmp_path / "gray.png"), gray)
+    cv2.imwrite(str(tmp_path / "colour.png"), colour)
+    assert main(["real", "prepare", str(tmp_path / "gray.png"), str(tmp_path / "colour.png"), "--out", str(tmp_path / "o"),
+                 "--gray-tint", "both"]) == 0
+    lines = {Path(line.split(":")[0].strip()).name: line for line in capsys.readouterr().out.splitlines() if ".png:" in line}
+    assert lines["gray.png"].endswith("greyscale: tinted (both)") and "tinted" not in lines["colour.png"]
+
+
 def test_real_cli_refuses_an_unknown_tint_in_one_line(tmp_path, capsys):
     from prismonet.cli import main
 

@@ -57,7 +57,8 @@ def cmd_prepare(args) -> int:
                           highlights=args.highlights, gray_tint=args.gray_tint)
     for r in recs:
         g = r["color_mapping"]["gain"]
-        print(f"  {r['photo']}: {_placed(r)}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f})")
+        tint = f", greyscale: tinted ({r['gray_tint']})" if "gray_tint" in r else ""
+        print(f"  {r['photo']}: {_placed(r)}, colour gain ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f}){tint}")
     _warn(recs)
     print(f"wrote {len(recs)} prepared photos to {args.out} (folder dataset: rgb/, annotations/, dataset.json)")
     return 0
