@@ -154,7 +154,8 @@ def _measured(labels, recs: list[dict], dest) -> dict:
         shape = read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2]
         m = photo_measures(lab, rec["detections"], rec["outlines"], shape)
         m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"],
-                 reading=f"{len(rec['tiles'])} tiles" if "tiles" in rec else "whole")
+                 reading=f"{len(rec['tiles'])} tiles" if "tiles" in rec else f"zoomed out {rec['prepare']['zoom_out']:g}x"
+                 if "zoom_out" in rec.get("prepare", {}) else "whole")
         rows.append(m)
     result = {"photos": rows, "overall": overall_measures(rows)}
     write_atomic(Path(dest), json.dumps(result, indent=1))

@@ -61,7 +61,7 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     if gray_tint not in TINTS:
         raise ValueError(f"gray_tint: expected {', '.join(TINTS)}, got {gray_tint!r}")
     tiles = 1 if tiling is None else tiling.tiles
-    if (tiles > 1 or (tiling is not None and tiling.target_px)) and calibration is not None:
+    if (tiles != 1 or (tiling is not None and (tiling.target_px or tiling.zoom_out))) and calibration is not None:
         raise ValueError("--tiles reads uncalibrated photos (each tile is seen by the training camera); a calibrated photo "
                          "is rectified to the model's view as a whole")
     stems = [Path(p).stem for p in photos]
@@ -84,13 +84,15 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
     (out / "annotations").mkdir(exist_ok=True)
     records, first_cam = [], None
     for p in photos:
-        img = load_photo(p)
+        img = raw = load_photo(p)
         flat = None
         if normalize == "flat":
             img, field = flatten_light(img)
             flat = {"field_min": float(field.min()), "field_max": float(field.max())}
         if tiles > 1:
             parts = _tiled(p, img, box, size, tiling, normalize, gain, target, highlights)
+        elif tiles < 1:
+            parts = _zoomed_out(p, raw, img, box, size, 1 / tiles, normalize, gain, target, highlights)
         else:
             if T is not None and own_camera:
                 view_img, cam, placed = _own_camera(p, img, cal, T, view, size, metres_per_unit)
@@ -175,6 +177,32 @@ def _tiled(p, img, box, size, tiling, normalize, gain, target, highlights) -> li
         own = _color_mapping(view_img, normalize, gain, target, highlights) if tiling.color == "tile" else mapping
         parts.append((f"{Path(p).stem}_t{t:02d}", view_img, cam, placed, own))
     return parts
+
+
+def _zoomed_out(p, raw, img, box, size, zoom, normalize, gain, target, highlights) -> list:
+    """An uncalibrated photo's whole view zoomed out ``zoom`` times: a square ``zoom`` times as wide on the same centre
+    (the whole view as ``img``, the photo as prepared so far, gives it), cut from the unprocessed photo ``raw`` with the
+    part beyond it filled with the median colour of the whole view's border (in a close-up the table shows mostly
+    there), then flattened (``normalize`` "flat") and colour-mapped as one photo, so that the fill and the table get one
+    colour; resized to ``size``. Returns ``[(name, image, camera, record fields, (mapping, note))]`` as ``_tiled``."""
+    from prismonet.geometry.camera import Camera, intrinsics_matrix
+
+    H, W = img.shape[:2]
+    x0, y0, w, h = (int(v) for v in (box if box is not None else auto_table_box(img, min_side=size)))
+    big = int(round(max(w, h) * zoom))
+    bx, by = x0 + w // 2 - big // 2, y0 + h // 2 - big // 2
+    sq = raw[y0 : y0 + h, x0 : x0 + w]
+    view = np.empty((big, big, 3), raw.dtype)
+    view[:] = np.median(np.concatenate([sq[0], sq[-1], sq[:, 0], sq[:, -1]]), axis=0)
+    sx0, sy0, sx1, sy1 = max(bx, 0), max(by, 0), min(bx + big, W), min(by + big, H)
+    view[sy0 - by : sy1 - by, sx0 - bx : sx1 - bx] = raw[sy0:sy1, sx0:sx1]
+    if normalize == "flat":
+        view, _ = flatten_light(view)
+    K = intrinsics_matrix(float(W), float(W), (W - 1) / 2, (H - 1) / 2)
+    view, cam = resize(view, Camera(K, torch.eye(4), H, W).cropped(bx, by, big, big), size)
+    outline = [[bx - 0.5, by - 0.5], [bx + big - 0.5, by - 0.5], [bx + big - 0.5, by + big - 0.5], [bx - 0.5, by + big - 0.5]]
+    placed = {"crop_box": [bx, by, big, big], "outline": outline, "zoom_out": zoom, "warnings": []}
+    return [(Path(p).stem, view, cam, placed, _color_mapping(view, normalize, gain, target, highlights))]
 
 
 def _photo_in_model(p, img, cal, T, view, size, metres_per_unit):

@@ -104,7 +104,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     fp = prior_fingerprint(net.prior)
     loss_cfg = training_loss_config(info)
     by_index, shown = {}, {}  # shown: each photo as uint8, loaded once for all its views' figures
-    bar = tqdm(total=len(ds), desc="reconstruct", unit="photo" if tiles == 1 else "tile", disable=not progress)
+    bar = tqdm(total=len(ds), desc="reconstruct", unit="photo" if tiles <= 1 else "tile", disable=not progress)
     tinted = [gray_cfg is not None and "gray_tint" in by_name[name] for name in ds.names]
     groups = [(cfg, [i for i in range(len(ds)) if not tinted[i]]), (gray_cfg, [i for i in range(len(ds)) if tinted[i]])]
     for view_cfg, rows in ((c, idx[s : s + BATCH]) for c, idx in groups for s in range(0, len(idx), BATCH)):
@@ -178,7 +178,8 @@ def _view_record(net, o, b, j, name, rec, photo, elev, psnr, per_view, fp, cfg, 
                                                            o.latents.params.position, o.latents.params.z_sh))
     return {"photo": rec["photo"], "objects_found": len(keep), "found_slots": keep, "scene_slots": scene_slots,
             "objects": _objects(o, j, keep, rec.get("world")),
-            "detections": view_detections(instance, rec["outline"], min_pixels, tuple(rec.get("inner_edges", (False,) * 4))),
+            "detections": view_detections(instance, rec["outline"], min_pixels, tuple(rec.get("inner_edges", (False,) * 4)),
+                                          rec.get("zoom_out", 1.0) ** 2),
             "outlines": [rec["outline"]],
             "figure": str(fig), "scene": None if scene_path is None else str(scene_path), "instance": str(per_view / f"{name}_instance.png"),
             "mesh": None if mesh_path is None else str(mesh_path),
@@ -190,9 +191,10 @@ def _view_record(net, o, b, j, name, rec, photo, elev, psnr, per_view, fp, cfg, 
 
 
 def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
-    """``TileConfig.below_px`` or ``target_px``: read every photo whole first (into ``out/whole``), then in tiles those
-    whose objects are small (or none found, or read poorly), as many as ``TileConfig.tiles_after`` asks; each record
-    says which reading it is (``reading``, ``tiles_across``) and the whole reading's median object size and PSNR."""
+    """``TileConfig.below_px``, ``target_px`` or ``zoom_out``: read every photo whole first (into ``out/whole``), then in
+    tiles those whose objects are small (or none found, or read poorly), as many as ``TileConfig.tiles_after`` asks, and
+    zoomed out those whose objects are large; each record says which reading it is (``reading``: whole, tiles or zoomed
+    out; ``tiles_across``, under 1 when zoomed out) and the whole reading's median object size and PSNR."""
     from dataclasses import replace
 
     out = Path(out)
@@ -201,15 +203,16 @@ def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
     psnr = {r["photo"]: (r.get("psnr") or {}).get("encoder") for r in whole}
     count = {r["photo"]: tiling.tiles_after(size[r["photo"]], len(r["detections"]["scores"]), psnr[r["photo"]]) for r in whole}
     tiled = {}
-    for n in sorted({c for c in count.values() if c > 1}):
+    for n in sorted({c for c in count.values() if c != 1}):
         group = [str(p) for p in photos if count[str(p)] == n]
-        plain = replace(tiling, tiles=n, below_px=None, target_px=None, below_psnr=None, fine_tiles=None, fine_below_px=None)
+        plain = replace(tiling, tiles=n, below_px=None, target_px=None, below_psnr=None, fine_tiles=None, fine_below_px=None,
+                        zoom_out=None, zoom_out_above_px=None)
         tiled.update({r["photo"]: r for r in reconstruct_photos(group, out, tiling=plain, **kw)})
     results = []
     for r in whole:
-        rec = tiled.get(r["photo"], r)
-        results.append({**rec, "reading": "tiles" if r["photo"] in tiled else "whole", "tiles_across": count[r["photo"]],
-                        "whole_median_px": size[r["photo"]], "whole_psnr": psnr[r["photo"]]})
+        rec, n = tiled.get(r["photo"], r), count[r["photo"]]
+        reading = "whole" if r["photo"] not in tiled else "tiles" if n > 1 else "zoomed out"
+        results.append({**rec, "reading": reading, "tiles_across": n, "whole_median_px": size[r["photo"]], "whole_psnr": psnr[r["photo"]]})
     write_atomic(out / "summary.json", json.dumps(results, indent=1))
     return results
 
@@ -233,10 +236,13 @@ def _render_over_photo(net, scene, view, photo_shape) -> np.ndarray:
     return cv2.warpAffine(img, A, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=(255, 255, 255))
 
 
-def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS, inner=(False, False, False, False)) -> dict:
+def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS, inner=(False, False, False, False),
+                    score_scale: float = 1.0) -> dict:
     """The found objects of one view (``instance (S, S)``, 0 = background): their boxes in photo pixels (every mask
-    pixel's corners through the view-to-photo map of ``outline``), scores (visible pixels), slots, and whether each
-    is cut: its mask touches one of the view's ``inner`` edges (left, top, right, bottom; a tile's, ``realdata.tiles``)."""
+    pixel's corners through the view-to-photo map of ``outline``), scores (visible pixels, times ``score_scale``: a
+    zoomed-out view's ``zoom ** 2``, so that its objects score in the whole view's pixels, as a whole reading of the
+    photo would), slots, and whether each is cut: its mask touches one of the view's ``inner`` edges (left, top, right,
+    bottom; a tile's, ``realdata.tiles``)."""
     from realdata.boxes import mask_box, view_to_photo
     from realdata.tiles import mask_cut
 
@@ -244,7 +250,7 @@ def view_detections(instance: np.ndarray, outline, min_pixels: int = MIN_PIXELS,
     ids, counts = np.unique(instance[instance > 0], return_counts=True)
     found = [(int(k), int(c)) for k, c in zip(ids, counts) if c >= min_pixels]
     masks = [instance == k for k, _ in found]
-    return {"boxes": [list(mask_box(m, H)) for m in masks], "scores": [float(c) for _, c in found], "slots": [k - 1 for k, _ in found],
+    return {"boxes": [list(mask_box(m, H)) for m in masks], "scores": [float(c) * score_scale for _, c in found], "slots": [k - 1 for k, _ in found],
             "cut": [mask_cut(m, inner) for m in masks]}
 
 

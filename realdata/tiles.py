@@ -35,7 +35,8 @@ class TileConfig:
     """How to read a photo in tiles."""
 
     tiles: float = 2
-    """Tiles along the region's shorter side (1: the whole region at once; a fraction sets the tiles' side)."""
+    """Tiles along the region's shorter side (1: the whole region at once; a fraction above 1 sets the tiles' side;
+    under 1, one view ``1 / tiles`` times as wide as the whole one: zoomed out, ``zoom_out``)."""
     overlap: float = 0.25
     """The part of a tile's side that neighbouring tiles share."""
     color: str = "region"
@@ -56,10 +57,17 @@ class TileConfig:
     in this many tiles across instead of ``tiles`` (more zoom for the smallest objects)."""
     fine_below_px: float | None = None
     """The median size (visible pixels of the model's view) under which ``fine_tiles`` is used."""
+    zoom_out: float | None = None
+    """Read the photos whose whole reading finds objects of a median size above ``zoom_out_above_px`` again, zoomed out
+    this many times: one square view this many times as wide as the whole one, on the same centre, the part beyond the
+    photo filled with the table's colour, so that objects larger than the model was trained on shrink to its sizes (a
+    close-up of a cup is otherwise read as several slots). The tile rules come first."""
+    zoom_out_above_px: float | None = None
+    """The median size (visible pixels of the model's view) above which ``zoom_out`` is used."""
 
     def __post_init__(self):
-        if self.tiles < 1:
-            raise ValueError(f"tiles: expected at least 1, got {self.tiles}")
+        if not self.tiles > 0:
+            raise ValueError(f"tiles: expected a positive number, got {self.tiles}")
         if not 0.0 <= self.overlap < 1.0:
             raise ValueError(f"tile overlap: expected a fraction in [0, 1), got {self.overlap}")
         if self.target_px is not None and not self.target_px > 0:
@@ -77,33 +85,46 @@ class TileConfig:
         if (self.below_psnr is not None or self.fine_tiles is not None) and (self.below_px is None or self.target_px is not None):
             raise ValueError("the PSNR and fine-tile rules refine the size rule: "
                              "give --tile-below (below_px) and no --tile-size (target_px)")
+        if (self.zoom_out is None) != (self.zoom_out_above_px is None):
+            raise ValueError("zoom out: give both the factor and the size above which it is used")
+        if self.zoom_out is not None and not (self.zoom_out > 1 and self.zoom_out_above_px > 0):
+            raise ValueError(f"zoom out: expected a factor above 1 and a positive size, got {self.zoom_out}, {self.zoom_out_above_px}")
+        if self.zoom_out is not None and self.tiles > 1 and self.below_px is None:
+            raise ValueError("zoom out with tiles needs the size rule (--tile-below) to say which photos are read whole")
+        if self.zoom_out is not None and self.target_px is not None:
+            raise ValueError("zoom out refines the size rule: give no --tile-size (target_px) with it")
         if self.color not in ("region", "tile"):
             raise ValueError(f"tile colour mapping: expected region or tile, got {self.color!r}")
 
     def record(self) -> dict:
         return {"tiles": self.tiles, "overlap": self.overlap, "color": self.color, "below_px": self.below_px, "target_px": self.target_px,
-                "below_psnr": self.below_psnr, "fine_tiles": self.fine_tiles, "fine_below_px": self.fine_below_px}
+                "below_psnr": self.below_psnr, "fine_tiles": self.fine_tiles, "fine_below_px": self.fine_below_px,
+                "zoom_out": self.zoom_out, "zoom_out_above_px": self.zoom_out_above_px}
 
     @property
     def reads_whole_first(self) -> bool:
         """Whether each photo is read whole first and the count of tiles chosen from that reading."""
-        return self.target_px is not None or (self.below_px is not None and (self.tiles > 1 or self.fine_tiles is not None))
+        return (self.target_px is not None or self.zoom_out is not None
+                or (self.below_px is not None and (self.tiles > 1 or self.fine_tiles is not None)))
 
     def tiles_after(self, median_px: float, found: int, psnr: float | None) -> float:
         """Tiles across for a photo whose whole reading found ``found`` objects of median size ``median_px`` (visible
-        pixels of the model's view) and reconstructs it at ``psnr`` dB (``None``: not measured); 1: keep it whole.
+        pixels of the model's view) and reconstructs it at ``psnr`` dB (``None``: not measured); 1: keep it whole; under
+        1: read it zoomed out (``1 / zoom_out``).
 
         With ``target_px``, ``tiles_for``. Otherwise, in this order: ``fine_tiles`` where objects were found with a
         median under ``fine_below_px``; ``tiles`` where none was found, the median is under ``below_px``, or the PSNR
-        is under ``below_psnr``; else 1."""
+        is under ``below_psnr``; ``1 / zoom_out`` where the median is above ``zoom_out_above_px``; else 1."""
         if self.target_px is not None:
             return self.tiles_for(median_px if found else 0.0)
         if self.fine_tiles is not None and found > 0 and median_px < self.fine_below_px:
             return float(self.fine_tiles)
-        if found == 0 or median_px < self.below_px:
+        if self.below_px is not None and (found == 0 or median_px < self.below_px):
             return float(self.tiles)
         if self.below_psnr is not None and psnr is not None and psnr < self.below_psnr:
             return float(self.tiles)
+        if self.zoom_out is not None and found > 0 and median_px > self.zoom_out_above_px:
+            return 1.0 / self.zoom_out
         return 1.0
 
     def tiles_for(self, median_px: float) -> float:

@@ -171,7 +171,73 @@ def test_the_whole_reading_picks_the_tiles_by_hand():
     (dict(below_px=120.0, fine_tiles=0.5, fine_below_px=80.0), "fine tiles"),
     (dict(below_px=120.0, fine_tiles=3, fine_below_px=-1.0), "fine tile size"),
     (dict(below_psnr=18.0), "refine the size rule"),
+    (dict(below_px=120.0, zoom_out=2.0), "zoom out: give both"),
+    (dict(below_px=120.0, zoom_out=1.0, zoom_out_above_px=300.0), "factor above 1"),
+    (dict(zoom_out=2.0, zoom_out_above_px=300.0), "needs the size rule"),
+    (dict(target_px=400.0, below_px=120.0, zoom_out=2.0, zoom_out_above_px=300.0), "no --tile-size"),
 ])
 def test_bad_tile_rules_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         TileConfig(2, **kwargs)
+
+
+def test_large_objects_are_read_zoomed_out_by_hand():
+    """``TileConfig.zoom_out``: after the tile rules, a whole reading whose objects' median is above the bound asks for
+    ``1 / zoom_out`` tiles across (the bound strict; nothing found never zooms out); alone, it reads whole first."""
+    cfg = TileConfig(2, below_px=120.0, zoom_out=2.0, zoom_out_above_px=300.0)
+    assert cfg.reads_whole_first and TileConfig(1, zoom_out=2.0, zoom_out_above_px=300.0).reads_whole_first
+    assert cfg.tiles_after(100.0, 5, 25.0) == 2.0 and cfg.tiles_after(0.0, 0, 25.0) == 2.0  # the tile rule first
+    assert cfg.tiles_after(300.0, 3, 25.0) == 1.0 and cfg.tiles_after(301.0, 3, 25.0) == 0.5
+    assert TileConfig(1, zoom_out=2.0, zoom_out_above_px=300.0).tiles_after(0.0, 0, None) == 1.0
+    assert cfg.record()["zoom_out"] == 2.0 and cfg.record()["zoom_out_above_px"] == 300.0
+
+
+def test_a_zoomed_out_view_by_hand(tmp_path):
+    """A 128 x 128 photo, grey 0.5 with a red 16 x 16 square at x, y 56-71, read zoomed out 2x from the box (0, 0, 128,
+    128): a 256-pixel square on the same centre, from -64 to 191, four photo pixels to a view pixel; the square lands on
+    view pixels 30-33, the rest of the view is the fill (the border's median, grey), and the outline maps a view mask
+    back to photo pixels."""
+    import cv2
+
+    from realdata.boxes import mask_box, view_to_photo
+    from realdata.pipeline import prepare_photos
+
+    img = np.full((128, 128, 3), 128, np.uint8)
+    img[56:72, 56:72] = (0, 0, 255)  # BGR red
+    cv2.imwrite(str(tmp_path / "p.png"), img)
+    rec = prepare_photos([str(tmp_path / "p.png")], tmp_path / "o", box=(0, 0, 128, 128), normalize="none",
+                         tiling=TileConfig(0.5))[0]
+    assert rec["zoom_out"] == 2.0 and rec["crop_box"] == [-64, -64, 256, 256]
+    assert rec["outline"] == [[-64.5, -64.5], [191.5, -64.5], [191.5, 191.5], [-64.5, 191.5]]
+    view = cv2.imread(str(tmp_path / "o" / "rgb" / "p.png"))[..., ::-1].astype(int)
+    red = np.zeros((64, 64), bool)
+    red[30:34, 30:34] = True
+    assert (np.abs(view[red] - [255, 0, 0]) <= 1).all() and (np.abs(view[~red] - 128) <= 1).all()
+    assert np.allclose(mask_box(red, view_to_photo(rec["outline"], 64)), (55.5, 55.5, 71.5, 71.5), atol=1e-4)
+
+
+def test_a_close_up_is_read_zoomed_out(tmp_path):
+    """Through ``real evaluate``: a photo whose whole reading finds objects above the bound is read again zoomed out
+    (its record and table say so; a bound above every object keeps it whole); a calibrated photo is refused."""
+    import cv2
+
+    from prismonet.assets import SHIPPED_SAMPLES, asset_path
+    from prismonet.data.dataset import SceneDataset
+    from realdata.evaluate import evaluate_photos, format_real_table
+    from realdata.pipeline import prepare_photos
+
+    b = SceneDataset(asset_path(SHIPPED_SAMPLES), "test").batch([0])
+    cv2.imwrite(str(tmp_path / "p.png"), (b.rgb[0].permute(1, 2, 0).numpy()[..., ::-1] * 255).round().astype(np.uint8))
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    (labels / "p.json").write_text(json.dumps({"photo": "../p.png", "objects": [{"box": [0, 0, 10, 10]}]}))
+    for above, reading in ((1.0, "zoomed out"), (1e6, "whole")):
+        run = tmp_path / f"z{above:g}"
+        r = evaluate_photos(labels, run, "shipped", progress=False, tiling=TileConfig(1, zoom_out=2.0, zoom_out_above_px=above))
+        s = json.loads((run / "summary.json").read_text())[0]
+        assert s["reading"] == reading and s["tiles_across"] == (0.5 if reading == "zoomed out" else 1.0)
+        assert ("| p.png | zoomed out 2x |" in format_real_table(r)) == (reading == "zoomed out") and Path(s["figure"]).is_file()
+        if reading == "zoomed out":  # scores in the whole view's pixels: four per view pixel at 2x
+            assert s["detections"]["scores"] and all(v % 4 == 0 for v in s["detections"]["scores"])
+    with pytest.raises(ValueError, match="uncalibrated"):
+        prepare_photos([str(tmp_path / "p.png")], tmp_path / "c", calibration=tmp_path / "c.yaml", tiling=TileConfig(0.5))

@@ -24,11 +24,12 @@ def _tiling(args):
     """The ``--tile*`` options as a ``TileConfig`` (``None``: the whole region at once)."""
     from realdata.tiles import TileConfig
 
-    if args.tiles == 1 and args.tile_size is None and args.tiles_fine is None:
+    if args.tiles == 1 and args.tile_size is None and args.tiles_fine is None and args.zoom_out is None:
         return None
-    fine = args.tiles_fine
+    fine, zoom = args.tiles_fine, args.zoom_out
     return TileConfig(args.tiles, args.tile_overlap, args.tile_color, args.tile_size, args.tile_below, args.tile_psnr_below,
-                      None if fine is None else fine[0], None if fine is None else fine[1])
+                      None if fine is None else fine[0], None if fine is None else fine[1],
+                      None if zoom is None else zoom[0], None if zoom is None else zoom[1])
 
 
 def _warn(recs: list[dict]) -> None:
@@ -235,4 +236,8 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tiles-fine", nargs=2, type=arg_float(1.0, 1e6), metavar=("N", "PX"),
                    help="with --tile-below: read the photos whose whole reading finds objects of a median size under PX "
                         "visible pixels in N tiles across instead of --tiles")
+    p.add_argument("--zoom-out", nargs=2, type=arg_float(1.0, 1e6), metavar=("Z", "PX"),
+                   help="uncalibrated photos: read whole first, then zoomed out Z times those whose objects' median size is above "
+                        "PX visible pixels of the model's view (a view Z times as wide, the rest filled with the table's colour): "
+                        "close-ups whose objects are larger than the model was trained on")
     p.add_argument("--quiet", action="store_true")
