@@ -48,18 +48,24 @@ def test_is_gray_view():
     assert not is_gray_view(img)
 
 
+def _grey_and_colour(folder, names=("gray.png", "colour.png"), light=np.s_[20:40, 20:40], red=np.s_[60:80, 60:80]) -> list:
+    """Two 96 x 96 photos on a grey table (120): the first with a light (220) object at ``light``, the second the same
+    with a red object at ``red`` (a colour photo); their paths."""
+    gray = np.full((96, 96, 3), 120, np.uint8)
+    gray[light] = 220
+    colour = gray.copy()
+    colour[red] = (40, 60, 200)  # BGR: red
+    for name, img in zip(names, (gray, colour)):
+        cv2.imwrite(str(folder / name), img)
+    return [folder / n for n in names]
+
+
 def test_prepare_tints_grey_photos_only(tmp_path):
     """Through ``prepare_photos``: a grey photo is tinted and its record says so; a colour photo is written the same
     with the tint asked for as without it; an unknown tint is refused before anything is written."""
     from realdata.pipeline import prepare_photos
 
-    gray = np.full((96, 96, 3), 120, np.uint8)
-    gray[20:40, 20:40] = 220  # a light object
-    colour = gray.copy()
-    colour[60:80, 60:80] = (40, 60, 200)  # BGR: a red object
-    cv2.imwrite(str(tmp_path / "gray.png"), gray)
-    cv2.imwrite(str(tmp_path / "colour.png"), colour)
-    photos = [tmp_path / "gray.png", tmp_path / "colour.png"]
+    photos = _grey_and_colour(tmp_path)
     plain = prepare_photos(photos, tmp_path / "off", box=(0, 0, 96, 96), size=32)
     tinted = prepare_photos(photos, tmp_path / "light", box=(0, 0, 96, 96), size=32, gray_tint="light")
     read = {d: {n: cv2.imread(str(tmp_path / d / "rgb" / f"{n}.png")) for n in ("gray", "colour")} for d in ("off", "light")}
@@ -77,14 +83,8 @@ def test_prepare_tints_grey_photos_only(tmp_path):
 def test_real_prepare_says_which_photos_it_tinted(tmp_path, capsys):
     from prismonet.cli import main
 
-    gray = np.full((96, 96, 3), 120, np.uint8)
-    gray[20:40, 20:40] = 220
-    colour = gray.copy()
-    colour[60:80, 60:80] = (40, 60, 200)
-    cv2.imwrite(str(tmp_path / "gray.png"), gray)
-    cv2.imwrite(str(tmp_path / "colour.png"), colour)
-    assert main(["real", "prepare", str(tmp_path / "gray.png"), str(tmp_path / "colour.png"), "--out", str(tmp_path / "o"),
-                 "--gray-tint", "both"]) == 0
+    photos = _grey_and_colour(tmp_path)
+    assert main(["real", "prepare", *map(str, photos), "--out", str(tmp_path / "o"), "--gray-tint", "both"]) == 0
     lines = {Path(line.split(":")[0].strip()).name: line for line in capsys.readouterr().out.splitlines() if ".png:" in line}
     assert lines["gray.png"].endswith("greyscale: tinted (both)") and "tinted" not in lines["colour.png"]
 
@@ -104,14 +104,8 @@ def test_gray_views_take_their_own_inference(tmp_path):
     from prismonet.model.inference import InferenceConfig
     from realdata.reconstruct import reconstruct_photos
 
-    gray = np.full((96, 96, 3), 120, np.uint8)
-    gray[30:60, 30:60] = 220
-    colour = gray.copy()
-    colour[30:60, 30:60] = (40, 60, 200)
-    cv2.imwrite(str(tmp_path / "grey.png"), gray)
-    cv2.imwrite(str(tmp_path / "hue.png"), colour)
+    photos = [str(p) for p in _grey_and_colour(tmp_path, ("grey.png", "hue.png"), np.s_[30:60, 30:60], np.s_[30:60, 30:60])]
     steps = InferenceConfig.of(prune=True)
-    photos = [str(tmp_path / "grey.png"), str(tmp_path / "hue.png")]
     plain = reconstruct_photos(photos, tmp_path / "plain", box=(0, 0, 96, 96), inference=steps, gray_tint="both",
                                progress=False, meshes=False)
     assert {r["inference"] == steps.without_depth().record() for r in plain} == {True}
