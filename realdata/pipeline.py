@@ -47,7 +47,8 @@ def prepare_photos(photos: list[str | Path], out: str | Path, size: int = 64, ca
             on the table and resized, and takes the calibrated camera, mapped into the model's world.
         tiling: a ``realdata.tiles.TileConfig``, uncalibrated photos only: read the table region (or ``box``)
             as overlapping square tiles, each prepared as its own image named ``STEM_tNN``, with the colour
-            mapping read off the whole region or off each tile.
+            mapping read off the whole region or off each tile; with ``tiling.tiles`` under 1, one view that many
+            times as wide instead, zoomed out (``_zoomed_out``).
         gray_tint: ``"off"``, or for a greyscale photo a hue for what is lighter than its table (``"light"``) and also
             for what is darker (``"both"``), after the colour mapping (``realdata.gray_tint``); colour photos are
             unchanged.

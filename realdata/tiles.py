@@ -60,8 +60,9 @@ class TileConfig:
     zoom_out: float | None = None
     """Read the photos whose whole reading finds objects of a median size above ``zoom_out_above_px`` again, zoomed out
     this many times: one square view this many times as wide as the whole one, on the same centre, the part beyond the
-    photo filled with the table's colour, so that objects larger than the model was trained on shrink to its sizes (a
-    close-up of a cup is otherwise read as several slots). The tile rules come first."""
+    photo filled with the median colour of the whole view's border, so that objects larger than the model was trained
+    on shrink to its sizes (a close-up of a cup is otherwise read as several slots). The tile rules come first. Measured
+    on close-up stand-ins and not chosen for the photo setting (EVALUATION.md, session 86)."""
     zoom_out_above_px: float | None = None
     """The median size (visible pixels of the model's view) above which ``zoom_out`` is used."""
 

@@ -238,6 +238,7 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
                         "visible pixels in N tiles across instead of --tiles")
     p.add_argument("--zoom-out", nargs=2, type=arg_float(1.0, 1e6), metavar=("Z", "PX"),
                    help="uncalibrated photos: read whole first, then zoomed out Z times those whose objects' median size is above "
-                        "PX visible pixels of the model's view (a view Z times as wide, the rest filled with the table's colour): "
-                        "close-ups whose objects are larger than the model was trained on")
+                        "PX visible pixels of the model's view (a view Z times as wide, the rest filled with the colour of the view's "
+                        "border): close-ups whose objects are larger than the model was trained on (measured, not chosen: "
+                        "EVALUATION.md, session 86)")
     p.add_argument("--quiet", action="store_true")
