@@ -190,6 +190,8 @@ def _zoomed_out(p, raw, img, box, size, zoom, normalize, gain, target, highlight
 
     H, W = img.shape[:2]
     x0, y0, w, h = (int(v) for v in (box if box is not None else auto_table_box(img, min_side=size)))
+    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
+        raise PhotoError(f"{p}: crop box {(x0, y0, w, h)} does not fit in the {W}x{H} photo")
     big = int(round(max(w, h) * zoom))
     bx, by = x0 + w // 2 - big // 2, y0 + h // 2 - big // 2
     sq = raw[y0 : y0 + h, x0 : x0 + w]

@@ -214,6 +214,10 @@ def test_a_zoomed_out_view_by_hand(tmp_path):
     red[30:34, 30:34] = True
     assert (np.abs(view[red] - [255, 0, 0]) <= 1).all() and (np.abs(view[~red] - 128) <= 1).all()
     assert np.allclose(mask_box(red, view_to_photo(rec["outline"], 64)), (55.5, 55.5, 71.5, 71.5), atol=1e-4)
+    from realdata.io import PhotoError
+
+    with pytest.raises(PhotoError, match="does not fit"):
+        prepare_photos([str(tmp_path / "p.png")], tmp_path / "bad", box=(100, 0, 64, 64), tiling=TileConfig(0.5))
 
 
 def test_a_close_up_is_read_zoomed_out(tmp_path):
