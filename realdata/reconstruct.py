@@ -40,7 +40,8 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
                        resolution: int = 40, inference=None, progress: bool = True,
                        metres_per_unit: float | None = None, elevation: float | dict[str, float] | None = None,
                        elevation_hints: dict[str, float] | None = None, tiling=None, meshes: bool = True,
-                       highlights: float | None = HIGHLIGHT_PERCENTILE, gray_tint: str = "off", gray_inference=None) -> list[dict]:
+                       highlights: float | None = HIGHLIGHT_PERCENTILE, gray_tint: str = "off", gray_inference=None,
+                       prepared_dir: str = "prepared") -> list[dict]:
     """Run the whole real-photo path; returns one record per photo (also in ``out/summary.json``), each with its
     ``detections``: the found objects' boxes in photo pixels and their scores (visible pixels).
 
@@ -60,7 +61,9 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
 
     ``gray_tint`` (``realdata.gray_tint``): a hue for greyscale photos. ``gray_inference``: the ``InferenceConfig`` for the
     views that tint changed (None: ``inference`` for every view), e.g. no test-time steps for greyscale photos while colour
-    ones take them (EVALUATION.md, session 85); each group is decoded in batches of its own."""
+    ones take them (EVALUATION.md, session 85); each group is decoded in batches of its own. ``prepared_dir``: the folder
+    under ``out`` for the prepared views (a reading that reads some photos again in tiles or zoomed out keeps each
+    group's views in a folder of its own)."""
     if tiling is not None and tiling.reads_whole_first:
         return _tiled_where_small(photos, out, tiling, model=model, calibration=calibration, box=box, normalize=normalize, gain=gain,
                                   objects=objects, min_pixels=min_pixels, mesh_format=mesh_format, resolution=resolution,
@@ -80,7 +83,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     gray_cfg = None if gray_inference is None else gray_inference.without_depth()
     out = Path(out)
     net, info = load_model(model, num_slots=objects)
-    prepared = out / "prepared"
+    prepared = out / prepared_dir
     train_cam, train_ground = training_camera(net, info)
     own = net.cfg.pose_frame == "camera"  # a camera-frame model takes the calibrated photo camera as it is
     asked = elevation  # given by the user, not a label's hint: say so when a calibrated camera overrides it
@@ -207,7 +210,8 @@ def _tiled_where_small(photos, out, tiling, **kw) -> list[dict]:
         group = [str(p) for p in photos if count[str(p)] == n]
         plain = replace(tiling, tiles=n, below_px=None, target_px=None, below_psnr=None, fine_tiles=None, fine_below_px=None,
                         zoom_out=None, zoom_out_above_px=None)
-        tiled.update({r["photo"]: r for r in reconstruct_photos(group, out, tiling=plain, **kw)})
+        folder = f"prepared_tiles{n:g}" if n > 1 else f"prepared_zoom{1 / n:g}"
+        tiled.update({r["photo"]: r for r in reconstruct_photos(group, out, tiling=plain, prepared_dir=folder, **kw)})
     results = []
     for r in whole:
         rec, n = tiled.get(r["photo"], r), count[r["photo"]]

@@ -241,7 +241,8 @@ def test_a_close_up_is_read_zoomed_out(tmp_path):
         s = json.loads((run / "summary.json").read_text())[0]
         assert s["reading"] == reading and s["tiles_across"] == (0.5 if reading == "zoomed out" else 1.0)
         assert ("| p.png | zoomed out 2x |" in format_real_table(r)) == (reading == "zoomed out") and Path(s["figure"]).is_file()
-        if reading == "zoomed out":  # scores in the whole view's pixels: four per view pixel at 2x
+        if reading == "zoomed out":  # scores in the whole view's pixels: four per view pixel at 2x; its views kept apart
             assert s["detections"]["scores"] and all(v % 4 == 0 for v in s["detections"]["scores"])
+            assert (run / "prepared_zoom2" / "rgb" / "p.png").is_file() and (run / "whole" / "prepared" / "rgb" / "p.png").is_file()
     with pytest.raises(ValueError, match="uncalibrated"):
         prepare_photos([str(tmp_path / "p.png")], tmp_path / "c", calibration=tmp_path / "c.yaml", tiling=TileConfig(0.5))
