@@ -163,14 +163,14 @@ def _measured(labels, recs: list[dict], dest) -> dict:
 
 
 def overall_measures(rows: list[dict]) -> dict:
-    """The overall row of ``photo_measures`` rows (each with its ``psnr`` readings): AP and AR over all photos' boxes
-    pooled, counts summed, foreground IoU and the last PSNR reading averaged over the photos."""
+    """The overall row of ``photo_measures`` rows: AP and AR over all photos' boxes pooled, counts summed, foreground
+    IoU and (where every row has its ``psnr`` readings; else None) the last PSNR reading averaged over the photos."""
     ap, ar = ap_ar(np.concatenate([np.asarray(r["scores"], np.float64) for r in rows]),
                    np.concatenate([np.asarray(r["hits"], bool) for r in rows]), sum(r["true_objects"] for r in rows))
     return {"photos": len(rows), "true_objects": sum(r["true_objects"] for r in rows), "true_in_view": sum(r["true_in_view"] for r in rows),
             "objects_found": sum(r["objects_found"] for r in rows), "box_AP0.5": ap, "box_AR0.5": ar,
             "foreground_IoU": float(np.mean([r["foreground_IoU"] for r in rows])),
-            "PSNR": float(np.mean([list(r["psnr"].values())[-1] for r in rows])),
+            "PSNR": float(np.mean([list(r["psnr"].values())[-1] for r in rows])) if all(r.get("psnr") for r in rows) else None,
             "count_within_slack": sum(abs(r["objects_found"] - r["true_in_view"]) <= COUNT_SLACK for r in rows)}
 
 

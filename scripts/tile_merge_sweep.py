@@ -23,7 +23,7 @@ def main() -> None:
     import cv2
 
     from prismonet.files import read_image
-    from realdata.evaluate import ap_ar, photo_measures
+    from realdata.evaluate import overall_measures, photo_measures
     from realdata.labels import load_labels
     from realdata.tiles import merge_detections
 
@@ -46,7 +46,7 @@ def main() -> None:
     shapes = {lab.photo: read_image(lab.photo, cv2.IMREAD_COLOR).shape[:2] for lab in labels}
     print("| merge IoU | cover | whole first | box AP0.5 | box AR0.5 | found / true | count within ±2 |\n|---|---|---|---|---|---|---|")
     for iou, cover, first in itertools.product([float(v) for v in args.iou.split(",")], [float(v) for v in args.cover.split(",")], firsts):
-        scores, hits, n_true, found, close = [], [], 0, 0, 0
+        rows = []
         for lab in labels:
             rec = summary[lab.photo.resolve()]
             boxes, sc, cut = [], [], []
@@ -66,15 +66,10 @@ def main() -> None:
             kept = (merge_detections(np.array(boxes).reshape(-1, 4), rank, np.array(cut, bool), iou, cover)
                     if "tiles" in rec else range(len(boxes)))  # a photo read whole is not merged (as in the pipeline)
             det = {"boxes": [boxes[k] for k in kept], "scores": [sc[k] for k in kept]}
-            m = photo_measures(lab, det, rec["outlines"], shapes[lab.photo])
-            scores += m["scores"]
-            hits += m["hits"]
-            n_true += m["true_objects"]
-            found += m["objects_found"]
-            close += abs(m["objects_found"] - m["true_in_view"]) <= 2
-        a, r = ap_ar(np.array(scores), np.array(hits, bool), n_true)
-        print(f"| {iou:g} | {cover:g} | {'-' if first is None else f'{first:g}'} | {a:.3f} | {r:.3f} | {found} / {n_true} | "
-              f"{close} of {len(labels)} |")
+            rows.append(photo_measures(lab, det, rec["outlines"], shapes[lab.photo]))
+        o = overall_measures(rows)
+        print(f"| {iou:g} | {cover:g} | {'-' if first is None else f'{first:g}'} | {o['box_AP0.5']:.3f} | {o['box_AR0.5']:.3f} | "
+              f"{o['objects_found']} / {o['true_objects']} | {o['count_within_slack']} of {len(labels)} |")
 
 
 if __name__ == "__main__":

@@ -260,3 +260,13 @@ def test_standin_labels_ignore_the_small_objects():
     inst[10:12, 10:12] = 2  # 4 px: 0.01
     boxes, small = mod.scene_label(inst, 0.02)
     assert boxes == [[2.5, 1.5, 7.5, 5.5]] and small == [[9.5, 9.5, 11.5, 11.5]]
+
+
+def test_overall_measures_without_psnr():
+    """Rows measured offline (no reconstruction readings) pool the same, with PSNR None."""
+    from realdata.evaluate import overall_measures
+
+    rows = [_row("a", [0.9, 0.8], [True, False], 2, 2), _row("b", [0.5], [True], 1, 1)]
+    bare = [{k: v for k, v in r.items() if k != "psnr"} for r in rows]
+    o, b = overall_measures(rows), overall_measures(bare)
+    assert b["PSNR"] is None and o["PSNR"] == 20.0 and {k: v for k, v in o.items() if k != "PSNR"} == {k: v for k, v in b.items() if k != "PSNR"}
