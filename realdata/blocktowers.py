@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from realdata.io import PhotoError, load_photo
+from realdata.prepare import check_box
 
 
 @dataclass(frozen=True)
@@ -50,7 +51,5 @@ def load_tower(photo: TowerPhoto, box: tuple[int, int, int, int] | None, size: i
     if box is None:
         s = min(H, W)
         box = ((W - s) // 2, (H - s) // 2, s, s)
-    x0, y0, w, h = box
-    if x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H or w <= 0 or h <= 0:
-        raise PhotoError(f"{photo.path}: crop box {box} does not fit in the {W}x{H} photo")
+    x0, y0, w, h = check_box(box, img.shape, str(photo.path))
     return cv2.resize(img[y0 : y0 + h, x0 : x0 + w], (size, size), interpolation=cv2.INTER_AREA)

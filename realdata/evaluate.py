@@ -87,7 +87,7 @@ def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[i
     pred = np.array(detections["boxes"], np.float64).reshape(-1, 4)
     scores = np.array(detections["scores"], np.float64)
     truth = np.array(label.boxes).reshape(-1, 4)
-    ignore = np.array(getattr(label, "ignore", ()), np.float64).reshape(-1, 4)
+    ignore = np.array(label.ignore, np.float64).reshape(-1, 4)
     hits = box_hits(pred, scores, truth)
     ignored = ~hits & (box_iou(pred, ignore).max(axis=1) >= IOU_THRESHOLD) if len(pred) and len(ignore) else np.zeros(len(pred), bool)
     counted = ~ignored

@@ -14,7 +14,7 @@ from realdata.color import (HIGHLIGHT_PERCENTILE, MAX_GAIN, MAX_TINT, ColorMappi
 from realdata.gray_tint import TINTS, is_gray_view, tint_gray
 from realdata.illumination import flatten_light
 from realdata.io import PhotoError, load_photo
-from realdata.prepare import auto_table_box, crop, resize, table_region, undistort
+from realdata.prepare import auto_table_box, check_box, crop, resize, table_region, undistort
 
 DEFAULT_TARGET = (150, 150, 150)
 """The synthetic ground colour (ClevrConfig.ground_color)."""
@@ -161,10 +161,7 @@ def _tiled(p, img, box, size, tiling, normalize, gain, target, highlights) -> li
         sx, sy, side, _ = auto_table_box(img, min_side=size, region=(tx, ty, tw, th))
         rx, ry = min(tx, sx), min(ty, sy)
         region = (rx, ry, max(tx + tw, sx + side) - rx, max(ty + th, sy + side) - ry)
-    x0, y0, w, h = region
-    H, W = img.shape[:2]
-    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
-        raise PhotoError(f"{p}: crop box {region} does not fit in the {W}x{H} photo")
+    x0, y0, w, h = check_box(region, img.shape, str(p))
     mapping = _color_mapping(img[y0 : y0 + h, x0 : x0 + w], normalize, gain, target, highlights)
     tiles, overlap, n = tiling.tiles, tiling.overlap, tiling.tiles
     while n > 1 and tile_boxes(region, n, overlap)[0][2] < size:
@@ -189,9 +186,7 @@ def _zoomed_out(p, raw, img, box, size, zoom, normalize, gain, target, highlight
     from prismonet.geometry.camera import Camera, intrinsics_matrix
 
     H, W = img.shape[:2]
-    x0, y0, w, h = (int(v) for v in (box if box is not None else auto_table_box(img, min_side=size)))
-    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
-        raise PhotoError(f"{p}: crop box {(x0, y0, w, h)} does not fit in the {W}x{H} photo")
+    x0, y0, w, h = check_box(box if box is not None else auto_table_box(img, min_side=size), img.shape, str(p))
     big = int(round(max(w, h) * zoom))
     bx, by = x0 + w // 2 - big // 2, y0 + h // 2 - big // 2
     sq = raw[y0 : y0 + h, x0 : x0 + w]

@@ -18,12 +18,19 @@ def undistort(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return cv2.undistort(image, np.asarray(K, np.float64), np.asarray(dist, np.float64))
 
 
+def check_box(box, shape: tuple[int, ...], where: str = "") -> tuple[int, int, int, int]:
+    """``box = (x0, y0, width, height)`` as ints, refused in one line (``PhotoError``, prefixed by ``where``) unless it
+    is non-empty and lies inside a photo of ``shape`` ``(H, W, ...)``."""
+    x0, y0, w, h = (int(v) for v in box)
+    H, W = shape[:2]
+    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
+        raise PhotoError(f"{where + ': ' if where else ''}crop box {tuple(box)} does not fit in the {W}x{H} photo")
+    return x0, y0, w, h
+
+
 def crop(image: np.ndarray, camera, box: tuple[int, int, int, int]):
     """Crop to ``box = (x0, y0, width, height)``; returns ``(image, camera)``."""
-    x0, y0, w, h = (int(v) for v in box)
-    H, W = image.shape[:2]
-    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > W or y0 + h > H:
-        raise PhotoError(f"crop box {box} does not fit in the {W}x{H} photo")
+    x0, y0, w, h = check_box(box, image.shape)
     return image[y0 : y0 + h, x0 : x0 + w].copy(), camera.cropped(x0, y0, h, w)
 
 
