@@ -22,10 +22,16 @@ fixed object count, where every measure but the count improves (EVALUATION.md, s
 and `clevr1to8_keep`, which share the Clevr prior, they were measured and lost objects and precision; the other models
 were not measured with them. ``--shape-trials`` turns them on anywhere."""
 
+SHAPE_TRIAL_TABLE_MODELS = ("shipped", "clevr3")
+"""The models whose demo shape trials render from a table of shapes (``SHAPE_TRIAL_GRID``) with one more pass by the
+MLP, unless ``--search-grid`` says otherwise: measured on the 3-object model, 2.0x faster at no loss (EVALUATION.md,
+session 87). The rule asked the same of the 2, 4 and 5 object models and the 5-object one failed it (cubes drawn as
+cubes 0.06 fewer), so they keep the MLP."""
+
 DEMO_BATCH = 8
 """Scenes decoded at a time. The test-time search and colour fit run on the batch (each scene keeps its own score
-and latents), which costs less per scene than one at a time: the default 8 scenes with the shape trials in 19.0 s
-against 33.6 s one by one (BENCHMARKS.md, "Session 78: the demo decoded in batches")."""
+and latents), which costs less per scene than one at a time: the default 8 scenes with session 78's shape trials in 19.0 s
+against 33.6 s one by one (BENCHMARKS.md, "Session 78: the demo decoded in batches"); with session 87's table, 12.2 s."""
 
 
 def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, gt_depth) -> dict:
@@ -39,13 +45,15 @@ def scene_metrics(pred_instance, gt_instance, pred_image, gt_image, pred_depth, 
 
 
 def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", data: str | Path | None = None,
-             inference=None, progress: bool = True, shape_trials: bool | None = False) -> dict:
+             inference=None, progress: bool = True, shape_trials: bool | None = False, trial_grid: int | None = None) -> dict:
     """Run the demo into ``out``; returns ``{"scenes": [...per-scene records], "mean": {...}}``.
 
     ``inference``: the test-time steps after the encoder (an ``InferenceConfig``; default: none, the
     paper's feed-forward decoding). ``shape_trials`` ``None``: the search takes the shape trials
     (``prismonet.model.search.SHAPE_TRIAL_SETTINGS``) for the models they were measured to pay for
-    (``SHAPE_TRIAL_MODELS``), with 3 or more search rounds; ``True`` / ``False``: as ``inference`` says."""
+    (``SHAPE_TRIAL_MODELS``), with 3 or more search rounds; ``True`` / ``False``: as ``inference`` says. ``trial_grid``
+    ``None``: the shape trials of ``SHAPE_TRIAL_TABLE_MODELS`` render from a table (``with_trial_table``) unless
+    ``inference`` already has one; a number (``--search-grid``): as ``inference`` says."""
     from tqdm import tqdm
 
     from prismonet.assets import samples_for
@@ -53,7 +61,7 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.inference import InferenceConfig, infer
     from prismonet.model.io import load_model, prior_fingerprint, training_loss_config
-    from prismonet.model.search import with_shape_trials
+    from prismonet.model.search import with_shape_trials, with_trial_table
 
     cfg = inference or InferenceConfig()
     if scenes <= 0:
@@ -62,6 +70,8 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = "shipped", da
     net, info = load_model(model)
     if shape_trials is None and str(model) in SHAPE_TRIAL_MODELS and not cfg.search.shape_trials and cfg.search.rounds >= 3:
         cfg = replace(cfg, search=with_shape_trials(cfg.search))
+    if cfg.search.shape_trials and trial_grid is None and not cfg.search.grid and str(model) in SHAPE_TRIAL_TABLE_MODELS:
+        cfg = replace(cfg, search=with_trial_table(cfg.search))
     ds = SceneDataset(samples_for(model) if data is None else data, split="test")
     check_compatible(net, info, ds)
     n = min(scenes, len(ds))

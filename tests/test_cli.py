@@ -17,11 +17,13 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
     assert len(metrics["scenes"]) == 2 and 0 <= metrics["mean"]["AP0.5"] <= 1 and metrics["mean"]["PSNR"] > 10
     printed = capsys.readouterr().out
     assert "| **mean** |" in printed and str(out / "metrics.json") in printed
-    assert "encoder, then 3 pose-search rounds, every code of each category tried at the slot's footprint, 50 colour-fit steps" in printed
+    assert ("encoder, then 4 pose-search rounds, shapes tabulated at 24^3 in the first 3, every code of each category tried "
+            "at the slot's footprint, 50 colour-fit steps") in printed
     assert main(["demo", "--out", str(out), "--scenes", "1", "--quiet"]) == 0  # re-runnable over its own output
     metrics = json.loads((out / "metrics.json").read_text())
     search = metrics["inference"]["search"]
-    assert (search["rounds"], search["shape_trials"], search["shape_footprint"], metrics["inference"]["color_fit"]["steps"]) == (3, True, True, 50)
+    assert (search["rounds"], search["grid"], search["exact_rounds"], search["shape_trials"], search["shape_footprint"],
+            metrics["inference"]["color_fit"]["steps"]) == (4, 24, 1, True, True, 50)
 
 
 def test_demo_shape_trials_by_the_model_unless_told(tmp_path, capsys):
@@ -41,7 +43,9 @@ def test_demo_shape_trials_by_the_model_unless_told(tmp_path, capsys):
     assert cars["inference"]["search"]["shape_trials"] is False and "every code" not in cars["steps"]
     assert (tmp_path / "cars" / "scene_000.png").is_file() and (tmp_path / "cars" / "scene_000.json").is_file()
     two_obj = run_demo(tmp_path / "c2", 1, "clevr2", inference=InferenceConfig.of(search=3), progress=False, shape_trials=None)
-    assert two_obj["inference"]["search"]["shape_trials"] is True
+    assert two_obj["inference"]["search"]["shape_trials"] is True and two_obj["inference"]["search"]["grid"] == 0  # the MLP
+    mlp = run_demo(tmp_path / "mlp", 1, inference=InferenceConfig.of(search=3), progress=False, shape_trials=None, trial_grid=0)
+    assert (mlp["inference"]["search"]["rounds"], mlp["inference"]["search"]["grid"]) == (3, 0)  # --search-grid 0
     towers = run_demo(tmp_path / "tw", 1, "blocktowers", inference=InferenceConfig.of(search=3), progress=False, shape_trials=None)
     assert towers["inference"]["search"]["shape_trials"] is False
     told = run_demo(tmp_path / "twt", 1, "blocktowers", inference=InferenceConfig.of(search=3, shape_trials=True), progress=False)

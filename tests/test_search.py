@@ -92,11 +92,12 @@ def test_search_recovers_a_known_perturbation(shipped, kind, coarse, grid):
     assert torch.equal(found.composite.instance, target.composite.instance)
 
 
-@pytest.mark.parametrize("coarse, grid", [(0, 0), (1, 0), (2, 0), (0, 24), (1, 16)])
-def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid):
-    """Also with the trials rendered from tabulated shapes (``grid``): the result is the MLP's render."""
+@pytest.mark.parametrize("coarse, grid, exact", [(0, 0, 0), (1, 0, 0), (2, 0, 0), (0, 24, 0), (1, 16, 0), (0, 24, 1), (1, 16, 1)])
+def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid, exact):
+    """Also with the trials rendered from tabulated shapes (``grid``): the result is the MLP's render, and with
+    ``exact`` passes after the table's the MLP's own trials."""
     model, b, out = shipped
-    found = search_latents(model, out, b, SearchConfig(rounds=2, coarse_rounds=coarse, grid=grid))
+    found = search_latents(model, out, b, SearchConfig(rounds=2, coarse_rounds=coarse, grid=grid, exact_rounds=exact))
     before = fit_score(out.composite.image, out.composite.depth, b.rgb, b.depth)
     after = fit_score(found.composite.image, found.composite.depth, b.rgb, b.depth)
     assert bool((after <= before).all()) and bool((after < before).any())
@@ -115,7 +116,8 @@ def test_search_never_fits_worse_and_keeps_everything_else(shipped, coarse, grid
 
 @pytest.mark.parametrize("bad", [dict(rounds=-1), dict(scales=(0.0,)), dict(decay=0.0), dict(decay=1.5), dict(w_depth=-1.0),
                                  dict(rounds=2, coarse_rounds=3), dict(coarse_rounds=-1), dict(grid=-1), dict(grid=1),
-                                 dict(grid=16, shape_trials=True), dict(grid=16, shape_nearest=3), dict(shape_nearest=-1),
+                                 dict(shape_nearest=-1), dict(exact_rounds=1), dict(grid=16, rounds=2, exact_rounds=3),
+                                 dict(grid=16, rounds=2, coarse_rounds=2, exact_rounds=1), dict(grid=16, exact_rounds=-1),
                                  dict(shape_yaws=(30.0,)), dict(shape_scales=(0.8,)), dict(shape_polish=1), dict(shape_siblings=True), dict(shape_footprint=True), dict(shape_trials=True, shape_margin=1.0),
                                  dict(shape_trials=True, shape_scales=(0.0,)), dict(shape_trials=True, shape_polish=-1),
                                  dict(rounds=3, shape_round=1), dict(rounds=3, shape_trials=True, shape_round=3),
@@ -200,11 +202,13 @@ def test_sweep_script_refuses_a_bad_setting_in_one_line(setting, message):
     assert message in last and "Traceback" not in r.stderr
 
 
-def test_shape_trials_recover_the_right_category(shipped):
+@pytest.mark.parametrize("grid", [0, 32])
+def test_shape_trials_recover_the_right_category(shipped, grid):
     """Target: every slot drawn with a cube code of the prior; start: the same poses with a
     cylinder code, the target's cube code being the cube code nearest to it. With shape trials
     every visible slot ends on exactly that cube code and the scene is fitted exactly; without them
-    the shape latents are untouched."""
+    the shape latents are untouched. With ``grid`` the trials render every shape, the prior's codes too,
+    from the table, and must choose the same."""
     model, _, out = shipped
     p, bg = out.latents.params, out.latents.bg_color
     b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
@@ -217,9 +221,9 @@ def test_shape_trials_recover_the_right_category(shipped):
     with torch.no_grad():
         start = render_latents(model, _with(p, z_sh=cylinder.expand_as(p.z_sh).clone()), bg, b.K, b.T_world_cam, b.ground_z, H, W)
     only_shapes = dict(scales=(), shifts=(), yaws=(), rounds=1)
-    plain = search_latents(model, start, b, SearchConfig(**only_shapes))
+    plain = search_latents(model, start, b, SearchConfig(grid=grid, **only_shapes))
     assert torch.equal(plain.latents.params.z_sh, start.latents.params.z_sh)
-    found = search_latents(model, start, b, SearchConfig(shape_trials=True, **only_shapes))
+    found = search_latents(model, start, b, SearchConfig(shape_trials=True, grid=grid, **only_shapes))
     visible = torch.stack([(target.composite.instance == k + 1).flatten(1).any(1) for k in range(3)], 1)
     z = found.latents.params.z_sh
     assert torch.allclose(z[visible], cube.expand(int(visible.sum()), -1))
@@ -414,10 +418,12 @@ def test_shape_footprint_puts_each_code_where_the_slot_was_drawn(shipped):
     assert torch.equal(kept.latents.params.z_sh, start.latents.params.z_sh)
 
 
-def test_shape_nearest_tries_the_prior_codes_nearest_first(shipped):
+@pytest.mark.parametrize("grid", [0, 32])
+def test_shape_nearest_tries_the_prior_codes_nearest_first(shipped, grid):
     """Target: every slot drawn with one training code of the prior; start: the same poses with another
     code. Trying all the prior's codes fits the scene exactly (the target's code is among them);
-    trying only the one nearest to the start code tries the start's own code, which changes nothing."""
+    trying only the one nearest to the start code tries the start's own code, which changes nothing.
+    The same with the trials rendered from the table (``grid``)."""
     model, _, out = shipped
     p, bg = out.latents.params, out.latents.bg_color
     b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
@@ -428,9 +434,9 @@ def test_shape_nearest_tries_the_prior_codes_nearest_first(shipped):
     with torch.no_grad():
         start = render_latents(model, _with(p, z_sh=cylinder.expand_as(p.z_sh).clone()), bg, b.K, b.T_world_cam, b.ground_z, H, W)
     only_shapes = dict(scales=(), shifts=(), yaws=(), rounds=1)
-    one = search_latents(model, start, b, SearchConfig(shape_nearest=1, **only_shapes))
+    one = search_latents(model, start, b, SearchConfig(shape_nearest=1, grid=grid, **only_shapes))
     assert torch.equal(one.latents.params.z_sh, start.latents.params.z_sh)
-    every = search_latents(model, start, b, SearchConfig(shape_nearest=len(codes), **only_shapes))
+    every = search_latents(model, start, b, SearchConfig(shape_nearest=len(codes), grid=grid, **only_shapes))
     assert torch.allclose(every.composite.image, target.composite.image, atol=1e-4)
     assert float(fit_score(every.composite.image, every.composite.depth, b.rgb, b.depth).max()) < 1e-4
     assert not torch.allclose(start.composite.image, target.composite.image, atol=1e-2)
@@ -526,6 +532,12 @@ def test_shape_trials_flag_is_the_measured_setting(capsys):
 
     cfg = InferenceConfig.of(search=3, shape_trials=True).search
     assert {k: getattr(cfg, k) for k in SHAPE_TRIAL_SETTINGS} == SHAPE_TRIAL_SETTINGS
+    assert cfg == SearchConfig(rounds=3, **SHAPE_TRIAL_SETTINGS) == InferenceConfig.of(search=3, shape_trials=True, search_grid=0).search
+    # with a table: session 87's measured setting (`--search 4 --search-grid 24 --search-set exact_rounds=1` before
+    # --shape-trials added the MLP pass itself): the three passes from the table, then one with the MLP
+    assert InferenceConfig.of(search=3, shape_trials=True, search_grid=24).search == SearchConfig(
+        rounds=4, grid=24, exact_rounds=1, **SHAPE_TRIAL_SETTINGS)
+    assert InferenceConfig.of(search=3, search_grid=24).search == SearchConfig(rounds=3, grid=24)  # the plain search: as asked
     assert (cfg.shape_trials, cfg.shape_footprint, cfg.shape_round, cfg.w_depth) == (True, True, 2, 0.5)
     assert cfg.scales == SearchConfig().scales and cfg.w_image == SearchConfig().w_image  # nothing else moves
     assert InferenceConfig.of(search=3).search == SearchConfig(rounds=3)  # off by default
@@ -538,3 +550,65 @@ def test_shape_trials_flag_is_the_measured_setting(capsys):
                      "--fit-color", "0", "--quiet"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"need --search 3 or more, got {rounds}" in err[0], err
+
+
+def test_table_rows_of_slot_latents_and_prior_codes(shipped):
+    """The search's table stacks the slots' own shapes and then the prior's codes: a latent that equals code ``i``
+    exactly reads row ``B * K + i``, any other its slot's row, and each row holds that shape's own values."""
+    from prismonet.model.search import _Level
+    from prismonet.shapes.sdf_grid import SdfGrid
+
+    model, b, out = shipped
+    p = out.latents.params
+    B, K, D = p.z_sh.shape
+    codes = model.prior.latents.to(p.z_sh.dtype)
+    table = SdfGrid.tabulate(model.sdf_fn, torch.cat([p.z_sh.reshape(B * K, D), codes]), model.prior.bounds, 8)
+    level = _Level(model, out.latents.bg_color, out.bg_depth, b.K, b.T_world_cam, b.rgb, None, SearchConfig(grid=8), None,
+                   table, codes)
+    z = p.z_sh.clone()
+    z[0, 1] = codes[5]
+    z[B - 1, 0] = codes[0]
+    rows = level.rows(z, None)[..., 0]
+    expect = torch.arange(B * K, dtype=rows.dtype).view(B, K)
+    expect[0, 1], expect[B - 1, 0] = B * K + 5, B * K + 0
+    assert torch.equal(rows, expect)
+    assert torch.equal(level.rows(z[:, 1:2], 1)[..., 0], expect[:, 1:2])  # one slot alone
+    assert torch.equal(level.rows(z + 1e-3, None)[..., 0], torch.arange(B * K, dtype=rows.dtype).view(B, K))  # near is not equal
+    alone = SdfGrid.tabulate(model.sdf_fn, codes[5:6], model.prior.bounds, 8)
+    assert torch.allclose(table.values[B * K + 5], alone.values[0], atol=1e-6)
+
+
+def test_exact_rounds_polish_what_the_table_chose(shipped):
+    """A slot scaled by exactly one trial step from its rendered target: with the table alone the pass's
+    trial may or may not win (the table's shape is not the MLP's), but an MLP pass after it must end on the
+    target: the scene is fitted exactly, and never worse than the table's result."""
+    model, _, out = shipped
+    p, bg = out.latents.params, out.latents.bg_color
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    truth = _with(p, scale=p.scale.clamp(max=0.8))
+    target = _rendered_target(model, b, truth, bg)
+    H, W = b.rgb.shape[-2:]
+    with torch.no_grad():
+        start = render_latents(model, _with(truth, scale=truth.scale / 1.1), bg, b.K, b.T_world_cam, b.ground_z, H, W)
+    one_step = dict(scales=(1.1,), shifts=(), yaws=(), decay=1.0, grid=8)
+    table = search_latents(model, start, b, SearchConfig(rounds=1, **one_step))
+    polished = search_latents(model, start, b, SearchConfig(rounds=2, exact_rounds=1, **one_step))
+    score = lambda o: fit_score(o.composite.image, o.composite.depth, b.rgb, b.depth)
+    assert bool((score(polished) <= score(table) + 1e-7).all())
+    assert torch.allclose(polished.latents.params.scale, truth.scale, atol=1e-5)
+    assert torch.allclose(polished.composite.image, target.composite.image, atol=1e-4)
+
+
+def test_search_grid_flag_chooses_the_shape_trials_table(tmp_path):
+    """``--shape-trials`` with ``--search-grid G`` renders the passes from a G^3 table and adds one MLP pass; without it
+    (or with 0), session 78's MLP trials."""
+    import json
+
+    from prismonet.cli import main
+
+    for extra, want in (([], (3, 0, 0)), (["--search-grid", "0"], (3, 0, 0)), (["--search-grid", "16"], (4, 16, 1))):
+        out = tmp_path / f"r{len(extra)}{extra[-1] if extra else ''}.json"
+        assert main(["evaluate", "shipped", str(shipped_samples()), "--limit", "1", "--search", "3", "--shape-trials",
+                     "--fit-color", "0", "--quiet", "--json", str(out), *extra]) == 0
+        s = json.loads(out.read_text())["inference"]["search"]
+        assert (s["rounds"], s["grid"], s["exact_rounds"]) == want

@@ -49,9 +49,10 @@ def add_inference_args(p: argparse.ArgumentParser, search: int = 0, fit_color: i
                    help="score the search's trials with the render's depth clipped at the model's far depth, like the sensor's")
     g.add_argument("--search-coarse", type=int, default=0, metavar="C",
                    help="run the search's first C rounds at half the image size (a quarter of the rays; default 0)")
-    g.add_argument("--search-grid", type=int, default=0, metavar="G",
+    g.add_argument("--search-grid", type=int, default=None, metavar="G",
                    help="render the search's trials from each slot's shape tabulated at G^3 points instead of the MLP "
-                        "(the result is rendered with the MLP; default 0: the MLP throughout)")
+                        "(the result is rendered with the MLP; with the shape trials one more pass with the MLP follows; "
+                        "default: the MLP throughout, except in the demo's shape trials for the 3-object model, 24)")
     g.add_argument("--search-shapes", type=int, default=0, metavar="N",
                    help="in the search's first round, also try each slot's N nearest training shapes of the prior (default 0)")
     by_default = ("on for the Clevr models of 2-5 objects, where it was measured, else off" if shape_trials is None
@@ -87,7 +88,7 @@ def inference_config(args, has_depth: bool = True):
                               search_scales=None if args.search_scales is None else floats(args.search_scales, None, "--search-scales"),
                               search_far_clip=getattr(args, "search_far_clip", False),
                               search_coarse=getattr(args, "search_coarse", 0),
-                              search_grid=getattr(args, "search_grid", 0),
+                              search_grid=getattr(args, "search_grid", None),
                               search_shapes=getattr(args, "search_shapes", 0),
                               reseed=getattr(args, "reseed", 0), reseed_cycles=getattr(args, "reseed_cycles", 1),
                               reseed_grow=getattr(args, "reseed_grow", 0), search_set=getattr(args, "search_set", None),

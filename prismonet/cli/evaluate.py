@@ -16,7 +16,8 @@ def cmd_demo(args) -> int:
 
     t0 = time.perf_counter()
     cfg = inference_config(args)
-    result = run_demo(args.out, args.scenes, args.model, args.data, cfg, progress=not args.quiet, shape_trials=args.shape_trials)
+    result = run_demo(args.out, args.scenes, args.model, args.data, cfg, progress=not args.quiet, shape_trials=args.shape_trials,
+                      trial_grid=args.search_grid)
     print(format_demo_table(result))
     out = Path(args.out)
     print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "

@@ -68,16 +68,17 @@ class InferenceConfig:
     def of(cls, extra_slots: int = 0, search: int = 0, refine: int = 0, fit_color: int = 0, use_depth: bool = True,
            refine_lr: float | None = None, refine_pose_lr_scale: float | None = None, stop: bool = False,
            prune: bool = False, search_scales: tuple[float, ...] | None = None,
-           search_far_clip: bool = False, search_coarse: int = 0, search_grid: int = 0,
+           search_far_clip: bool = False, search_coarse: int = 0, search_grid: int | None = None,
            search_shapes: int = 0, reseed: int = 0, reseed_cycles: int = 1, reseed_grow: int = 0,
            search_set: list[str] | None = None, shape_trials: bool = False,
            reseed_on_objects: bool = False, reseed_replace: bool = False) -> "InferenceConfig":
         """From step counts, with every other setting at its measured default (validates each). ``shape_trials``: the
-        search takes ``SHAPE_TRIAL_SETTINGS`` (``search`` must be 3 or more). ``search_set``: more ``FIELD=VALUE``
-        settings of the search (``SearchConfig``, values as JSON), applied last."""
+        search takes ``SHAPE_TRIAL_SETTINGS`` (``search`` must be 3 or more; with ``search_grid`` its passes render from
+        that table and one more with the MLP follows, ``with_shape_trials``); ``search_grid`` ``None``: 0, the MLP.
+        ``search_set``: more ``FIELD=VALUE`` settings of the search (``SearchConfig``, values as JSON), applied last."""
         overrides = {"lr": refine_lr, "pose_lr_scale": refine_pose_lr_scale}
         scales = {} if search_scales is None else {"scales": tuple(search_scales)}
-        search_cfg = SearchConfig(rounds=search, far_clip=search_far_clip, coarse_rounds=search_coarse, grid=search_grid,
+        search_cfg = SearchConfig(rounds=search, far_clip=search_far_clip, coarse_rounds=search_coarse, grid=search_grid or 0,
                                   shape_nearest=search_shapes, **scales)
         if shape_trials:
             search_cfg = with_shape_trials(search_cfg)
@@ -117,6 +118,7 @@ class InferenceConfig:
                   + (", depth clipped" if self.search.far_clip else "")
                   + (f", the first {self.search.coarse_rounds} at half size" if self.search.coarse_rounds else "")
                   + (f", shapes tabulated at {self.search.grid}^3" if self.search.grid else "")
+                  + (f" in the first {self.search.rounds - self.search.exact_rounds}" if self.search.exact_rounds else "")
                   + (f", the {self.search.shape_nearest} nearest prior codes tried" if self.search.shape_nearest else "")
                   + ((", every code of each category tried at the slot's footprint" if self.search.shape_footprint else
                       ", each category's nearest code tried") if self.search.shape_trials else "")) if self.search.rounds else "",

@@ -103,13 +103,20 @@ class SearchConfig:
     """With G > 0 the trials render each slot's shape from a ``G^3`` table of its signed distances
     (``SdfGrid``, tabulated once per search) instead of the MLP; the result is then rendered once with the
     MLP, and a scene whose score that makes worse than the encoder's keeps the encoder's latents. 0: the
-    MLP throughout. Needs fixed shapes, so not with ``shape_trials``."""
+    MLP throughout. With ``shape_trials`` or ``shape_nearest`` the table also holds the prior's codes, the only other
+    shapes a trial can take."""
+    exact_rounds: int = 0
+    """With ``grid``: the last this many passes render with the MLP, after the MLP has confirmed the table passes'
+    result (a final polish of poses chosen against the tabulated shapes)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.coarse_rounds <= max(self.rounds, 0):
             raise ValueError(f"search: coarse_rounds must lie in [0, rounds], got {self.coarse_rounds} of {self.rounds}")
-        if self.grid < 0 or self.grid == 1 or (self.grid and (self.shape_trials or self.shape_nearest)):
-            raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, and not with shape trials, got {self.grid}")
+        if self.grid < 0 or self.grid == 1:
+            raise ValueError(f"search: grid must be 0 (off) or at least 2 nodes per axis, got {self.grid}")
+        if self.exact_rounds and not (self.grid and 0 < self.exact_rounds <= self.rounds - self.coarse_rounds):
+            raise ValueError(f"search: exact_rounds needs a grid and must leave the coarse passes to it, got {self.exact_rounds} "
+                             f"of {self.rounds} passes ({self.coarse_rounds} coarse, grid {self.grid})")
         if (self.shape_yaws or self.shape_scales or self.shape_polish or self.shape_siblings or self.shape_footprint) \
                 and not self.shape_trials:
             raise ValueError("search: shape_yaws, shape_scales, shape_siblings, shape_footprint and shape_polish act on the "
@@ -141,11 +148,26 @@ pass every prior code of each category is tried at each slot's footprint, turned
 variant's pose searched for 3 passes before it is judged against the slot as it was; depth weighs 0.5 in the score."""
 
 
+SHAPE_TRIAL_GRID = 24
+"""Nodes per axis of the table that the demo's shape trials render from for the 3-object model (``with_trial_table``;
+EVALUATION.md, session 87: on 512 new-seed validation scenes 2.0x faster than the MLP throughout, with unfiltered
+AP0.5 and AR0.5 +0.001, mAP +0.011, PSNR +0.28 dB, and 0.595 of cubes drawn as cubes against 0.606; it passed the same
+bars on the 2- and 4-object models, not on the 5-object one, whose cubes fell by 0.06)."""
+
+
+def with_trial_table(cfg: SearchConfig, grid: int = SHAPE_TRIAL_GRID) -> SearchConfig:
+    """``cfg``'s passes rendered from a ``grid``-cubed table of the slots' shapes and the prior's codes, then one more
+    pass with the MLP (``exact_rounds`` 1, so ``rounds`` is one more than ``cfg``'s)."""
+    return replace(cfg, grid=grid, rounds=cfg.rounds + 1, exact_rounds=1)
+
+
 def with_shape_trials(cfg: SearchConfig) -> SearchConfig:
-    """``cfg`` with ``SHAPE_TRIAL_SETTINGS``; the trials run in pass 3, so ``cfg.rounds`` must be 3 or more."""
+    """``cfg`` with ``SHAPE_TRIAL_SETTINGS``; the trials run in pass 3, so ``cfg.rounds`` must be 3 or more. With a
+    table (``cfg.grid``), one more pass with the MLP follows its passes (``with_trial_table``)."""
     if cfg.rounds <= SHAPE_TRIAL_SETTINGS["shape_round"]:
         raise ValueError(f"shape trials run in the search's third pass, so they need --search 3 or more, got {cfg.rounds}")
-    return replace(cfg, **SHAPE_TRIAL_SETTINGS)
+    trials = replace(cfg, **SHAPE_TRIAL_SETTINGS)
+    return with_trial_table(trials, cfg.grid) if cfg.grid else trials
 
 
 def _trials(cfg: SearchConfig, step: float, scale: torch.Tensor, position: torch.Tensor, cos_sin: torch.Tensor):
@@ -177,17 +199,32 @@ def _turn(cos_sin: torch.Tensor, degrees: float) -> torch.Tensor:
 class _Level:
     """The per-object renders of B scenes at one image size, and each scene's fit score against the
     input at that size: what a trial changes and is judged by. With ``shapes`` the objects render from
-    its table (slot ``k`` of scene ``b`` is row ``b * K + k``), else with the model's MLP."""
+    its table (slot ``k`` of scene ``b`` is row ``b * K + k``; a slot whose latent is one of ``prior_codes (C, D)``,
+    row ``B * K + i`` of code ``i``), else with the model's MLP."""
 
     def __init__(self, model, bg: torch.Tensor, bg_depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                  rgb: torch.Tensor, target_depth: torch.Tensor | None, cfg: SearchConfig, far: float | None,
-                 shapes: SdfGrid | None = None) -> None:
+                 shapes: SdfGrid | None = None, prior_codes: torch.Tensor | None = None) -> None:
         self.model, self.bg, self.bg_depth, self.K, self.T_world_cam = model, bg, bg_depth, K, T_world_cam
         self.rgb, self.target_depth, self.cfg, self.far = rgb, target_depth, cfg, far
         self.H, self.W = rgb.shape[-2:]
         self.settings = replace(model.render_settings(), soft_mask_tau=0.0)  # no soft silhouettes are read here
         self.sdf_fn = model.sdf_fn if shapes is None else shapes
-        self.codes = None if shapes is None else shapes.codes.view(bg.shape[0], -1, 1)
+        self.prior_codes = prior_codes
+        self.codes = None  # (B, K, 1): each slot's own row
+        if shapes is not None:
+            own = shapes.values.shape[0] - (0 if prior_codes is None else len(prior_codes))
+            self.codes = shapes.codes[:own].view(bg.shape[0], -1, 1)
+
+    def rows(self, z_sh: torch.Tensor, k: int | None) -> torch.Tensor:
+        """``(B, K', 1)`` table rows of the latents ``z_sh (B, K', D)`` (all slots, or slot ``k`` alone): a prior
+        code's own row where a latent equals it exactly (the shape trials copy the codes), else the slot's."""
+        own = self.codes if k is None else self.codes[:, k : k + 1]
+        if self.prior_codes is None or len(self.prior_codes) == 0:
+            return own
+        same = (z_sh[:, :, None, :] == self.prior_codes[None, None]).all(-1)  # (B, K', C)
+        hit, i = same.any(-1, keepdim=True), same.to(torch.uint8).argmax(-1, keepdim=True)
+        return torch.where(hit, (self.codes.numel() + i).to(own.dtype), own)
 
     def score(self, depth: torch.Tensor, mask: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
         c = composite(depth, mask, color, self.bg, self.bg_depth)
@@ -201,7 +238,7 @@ class _Level:
         """``(depth, mask, color)`` of every slot of ``params`` at this level's size (of slot ``k`` alone
         when ``params`` holds only that slot)."""
         if self.codes is not None:
-            params = replace(params, z_sh=self.codes if k is None else self.codes[:, k : k + 1])
+            params = replace(params, z_sh=self.rows(params.z_sh, k))
         obj = render_objects(self.sdf_fn, self.model.color_fn, params, self.K, self.T_world_cam, self.H, self.W,
                              self.settings)
         return obj.depth, obj.mask, obj.color
@@ -364,7 +401,8 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
 
     The first ``cfg.coarse_rounds`` passes render and score at half the size (``batch.ground_z`` is
     read for the ground's depth there); the rest, and the score that decides what is kept, at full size.
-    With ``cfg.grid`` the trials render from tabulated shapes and the result is rendered with the MLP."""
+    With ``cfg.grid`` the trials render from tabulated shapes and the result is rendered with the MLP (which then runs the
+    last ``cfg.exact_rounds`` passes itself)."""
     if cfg.rounds == 0 or (cfg.trials_per_slot == 0 and not cfg.shape_trials and not cfg.shape_nearest):
         return out
     p = out.latents.params
@@ -377,29 +415,35 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
         r, d = shape_extents(model.sdf_fn, p.z_sh.reshape(-1, p.z_sh.shape[-1]), model.prior.bounds)
         state.slot_extents = (r.view(p.scale.shape), d.view(p.scale.shape))
     B, Kslots = p.z_sh.shape[:2]
-    shapes = SdfGrid.tabulate(model.sdf_fn, p.z_sh.reshape(B * Kslots, -1), model.prior.bounds, cfg.grid) if cfg.grid else None
+    # the trials' shapes: each slot's own, and with shape trials the prior's codes (copied exactly, so found by equality)
+    prior_codes = model.prior.latents.to(p.z_sh.dtype) if cfg.grid and (cfg.shape_trials or cfg.shape_nearest) else None
+    table = p.z_sh.reshape(B * Kslots, -1) if prior_codes is None else torch.cat([p.z_sh.reshape(B * Kslots, -1), prior_codes])
+    shapes = SdfGrid.tabulate(model.sdf_fn, table, model.prior.bounds, cfg.grid) if cfg.grid else None
     start = (out.obj_depth, out.obj_mask, out.obj_color)  # the MLP's renders of the encoder's latents
     exact = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far)
     exact.set_renders(*(t.clone() for t in start))
     full = exact
     if shapes is not None:
-        full = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far, shapes)
+        full = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far, shapes, prior_codes)
         full.set_renders(*full.render(p))
     if cfg.coarse_rounds:
         H, W = batch.rgb.shape[-2:]
         Kc = resize_intrinsics(batch.K, 0.5, 0.5)  # pixel (i, j) of the half-size image covers pixels 2i..2i+1
         bg_depth = plane_depth(Kc, batch.T_world_cam, H // 2, W // 2, batch.ground_z, model.cfg.far_depth)
         coarse = _Level(model, bg, bg_depth, Kc, batch.T_world_cam, F.avg_pool2d(batch.rgb, 2),
-                        None if target_depth is None else F.avg_pool2d(target_depth, 2), cfg, far, shapes)
+                        None if target_depth is None else F.avg_pool2d(target_depth, 2), cfg, far, shapes, prior_codes)
         coarse.set_renders(*coarse.render(p))
         for r in range(cfg.coarse_rounds):
             coarse.run_round(state, r)
         # a coarse win that the full-size score does not confirm reverts
         full.confirm(state, full.render(state.params()), (full.depth, full.mask, full.color), full.best)
-    for r in range(cfg.coarse_rounds, cfg.rounds):
+    table_rounds = cfg.rounds - cfg.exact_rounds
+    for r in range(cfg.coarse_rounds, table_rounds):
         full.run_round(state, r)
-    if shapes is not None:  # the MLP's render decides, against the encoder's own
+    if shapes is not None:  # the MLP's render decides, against the encoder's own; then its own passes, if any
         exact.confirm(state, exact.render(state.params()), start, exact.best)
+        for r in range(table_rounds, cfg.rounds):
+            exact.run_round(state, r)
     comp = composite(exact.depth, exact.mask, exact.color, bg, out.bg_depth)
     return ModelOutput(SceneLatents(state.params(), bg), comp, exact.depth, exact.mask, exact.color, out.bg_depth, None,
                        slot_steps=out.slot_steps)
