@@ -44,3 +44,16 @@ def test_prior_keeps_its_codes_extents(shipped):
     assert all(torch.equal(a, b) for a, b in zip(first, direct))
     again = model.prior.code_extents()
     assert all(a is b for a, b in zip(first, again))
+
+
+def test_prior_keeps_its_codes_table_per_resolution(shipped):
+    """``ShapePrior.code_table`` is ``SdfGrid.tabulate`` of its codes, computed once per resolution (the same table
+    comes back); another resolution is another table."""
+    from prismonet.shapes.sdf_grid import SdfGrid
+
+    model, _, _ = shipped
+    first = model.prior.code_table(6)
+    direct = SdfGrid.tabulate(model.sdf_fn, model.prior.latents.detach(), model.prior.bounds, 6)
+    assert torch.equal(first.values, direct.values) and first.box == direct.box
+    assert model.prior.code_table(6) is first
+    assert model.prior.code_table(5).values.shape == (27, 5, 5, 5)

@@ -417,8 +417,10 @@ def search_latents(model, out: ModelOutput, batch, cfg: SearchConfig = SearchCon
     B, Kslots = p.z_sh.shape[:2]
     # the trials' shapes: each slot's own, and with shape trials the prior's codes (copied exactly, so found by equality)
     prior_codes = model.prior.latents.to(p.z_sh.dtype) if cfg.grid and (cfg.shape_trials or cfg.shape_nearest) else None
-    table = p.z_sh.reshape(B * Kslots, -1) if prior_codes is None else torch.cat([p.z_sh.reshape(B * Kslots, -1), prior_codes])
-    shapes = SdfGrid.tabulate(model.sdf_fn, table, model.prior.bounds, cfg.grid) if cfg.grid else None
+    shapes = SdfGrid.tabulate(model.sdf_fn, p.z_sh.reshape(B * Kslots, -1), model.prior.bounds, cfg.grid) if cfg.grid else None
+    if prior_codes is not None:  # the codes' rows follow the slots' (search._Level.rows), tabulated once per prior
+        codes = model.prior.code_table(cfg.grid)
+        shapes = SdfGrid(torch.cat([shapes.values, codes.values.to(shapes.values.dtype)]), shapes.box)
     start = (out.obj_depth, out.obj_mask, out.obj_color)  # the MLP's renders of the encoder's latents
     exact = _Level(model, bg, out.bg_depth, batch.K, batch.T_world_cam, batch.rgb, target_depth, cfg, far)
     exact.set_renders(*(t.clone() for t in start))

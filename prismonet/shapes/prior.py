@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from prismonet.shapes.decoder import SDFDecoder, SDFDecoderConfig
+from prismonet.shapes.sdf_grid import SdfGrid
 
 SHIPPED_PRIOR = "clevr_prior"
 
@@ -58,6 +59,16 @@ class ShapePrior:
             self.__dict__["_code_extents"] = shape_extents(lambda z, x: self.decoder(z[:, None, :], x), self.latents.detach(),
                                                            self.bounds)
         return self.__dict__["_code_extents"]
+
+    def code_table(self, resolution: int) -> SdfGrid:
+        """The training shapes' codes tabulated on a ``resolution``-cubed lattice of ``bounds``
+        (``SdfGrid.tabulate``; the shape trials' table, ``prismonet.model.search``), computed on first use per
+        resolution and kept, as ``code_extents`` is."""
+        tables = self.__dict__.setdefault("_code_tables", {})
+        if resolution not in tables:
+            tables[resolution] = SdfGrid.tabulate(lambda z, x: self.decoder(z[:, None, :], x), self.latents.detach(),
+                                                  self.bounds, resolution)
+        return tables[resolution]
 
     def frozen(self) -> "ShapePrior":
         """Put the decoder in eval mode with gradients off for its weights (not its inputs)."""
