@@ -28,6 +28,14 @@ meets every feed-forward target of issue 25 (test: AP0.5 0.977 unfiltered, AR0.5
 trained photometrically on 8,192 training images, 1,500 steps of batch 24 (session 58; session 57's 2,000 steps of
 batch 32 gave PSNR 26.55 but 1.02M images in all) (``clevr3_color_step_log.jsonl``). Not the default: below it on
 allObj (0.917 against 0.929) and the count; above it on PSNR (26.52 against 25.90) and mAP."""
+SHARP_MODEL = "clevr3_sharp_model"
+"""Session 89: the first model that draws cubes as cubes feed-forward. ``clevr3_fc`` with a keep refiner that also
+corrects each slot's shape latent (``--keep --shape``), fitted for 6,000 steps to 7,680 training scenes of targets from
+the demo's search with shape trials (``prismonet distill clevr3_fc ... --shape-trials --search-grid 24``;
+``clevr3_sharp_fit_log.jsonl``), applied twice, then a colour step (1,500 steps of batch 24 on 8,192 training images,
+``clevr3_sharp_step_log.jsonl``); the whole route is ``scripts/sharp_refit.sh``, 900K images seen. Not the default:
+level with it on the image and unfiltered AP0.5, a little below on allObj, mAP and the count (EVALUATION.md, session
+89)."""
 KEEP_MODEL = "clevr3_keep_model"
 """The model shipped in sessions 47-55: the glimpse-refiner recipe of session 46 (below) with a refiner that also learns
 which slots to keep (``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a
@@ -63,6 +71,7 @@ MODELS = {
     "clevr3_keep": KEEP_MODEL,
     "clevr3_fit13k": FIT13K_MODEL,
     "clevr3_color": COLOR_MODEL,
+    "clevr3_sharp": SHARP_MODEL,
     "clevr3_glimpse": GLIMPSE_MODEL,
     "clevr3_refiner": REFINER_MODEL,
     "clevr3_fc": FC_MODEL,
