@@ -10,19 +10,17 @@ set -e
 out=$1; count=${2:-9000}; steps=${3:-6000}
 if [ -z "$out" ]; then echo "usage: bash scripts/sharp_refit.sh OUT [COUNT] [STEPS]" >&2; exit 2; fi
 data=$(cd data/clevr3 2>/dev/null && pwd -P) || { echo "sharp_refit: data/clevr3 is missing (prismonet data clevr --objects 3 --out data/clevr3)" >&2; exit 2; }
+out=$(mkdir -p "$out" && cd "$out" && pwd -P)   # absolute, as the runs record their inputs: a rerun from elsewhere still resumes
 export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
-mkdir -p "$out"
 p() { python3 -m prismonet "$@"; }
+once() { local f=$1; shift; [ -s "$f" ] || { "$@" > "$f.tmp" 2>&1 && mv "$f.tmp" "$f"; }; }   # a report, written whole once
 p distill clevr3_fc "$data" --out "$out/distill_c3_table" --count "$count" --batch 32 \
   --search 3 --fit-color 50 --search-far-clip --shape-trials --search-grid 24 --quiet
 p refiner clevr3_fc "$data" --targets "$out/distill_c3_table" --out "$out/c3_table_fit" --steps "$steps" --batch 32 \
   --glimpse 0.375 --coords --keep --shape --quiet
 [ -f "$out/c3_table_fit_2p/model.json" ] || python3 scripts/set_refine_passes.py "$out/c3_table_fit" 2 "$out/c3_table_fit_2p"
-[ -s "$out/eval_fit_2p_val.txt" ] || p evaluate "$out/c3_table_fit_2p" "$data" --split val --limit 1000 --batch 64 > "$out/eval_fit_2p_val.tmp" 2>&1
-[ -f "$out/eval_fit_2p_val.tmp" ] && mv "$out/eval_fit_2p_val.tmp" "$out/eval_fit_2p_val.txt"
-[ -s "$out/codes_fit_2p_val.txt" ] || python3 scripts/shape_codes.py "$out/c3_table_fit_2p" "$data" --split val --limit 400 > "$out/codes_fit_2p_val.tmp" 2>&1
-[ -f "$out/codes_fit_2p_val.tmp" ] && mv "$out/codes_fit_2p_val.tmp" "$out/codes_fit_2p_val.txt"
+once "$out/eval_fit_2p_val.txt" p evaluate "$out/c3_table_fit_2p" "$data" --split val --limit 1000 --batch 64
+once "$out/codes_fit_2p_val.txt" python3 scripts/shape_codes.py "$out/c3_table_fit_2p" "$data" --split val --limit 400
 p color-step "$out/c3_table_fit_2p" "$data" --out "$out/c3_table_fit_cs" --count 8192 --steps 1500 --batch 24 --quiet
-[ -s "$out/eval_fit_cs_val.txt" ] || p evaluate "$out/c3_table_fit_cs" "$data" --split val --limit 1000 --batch 64 > "$out/eval_fit_cs_val.tmp" 2>&1
-[ -f "$out/eval_fit_cs_val.tmp" ] && mv "$out/eval_fit_cs_val.tmp" "$out/eval_fit_cs_val.txt"
+once "$out/eval_fit_cs_val.txt" p evaluate "$out/c3_table_fit_cs" "$data" --split val --limit 1000 --batch 64
 echo "sharp_refit: done ($out)"

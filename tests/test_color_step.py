@@ -179,6 +179,27 @@ def test_fit_color_step_raises_psnr_on_its_scenes_and_resumes(plain, tmp_path):
                                                                    torch.arange(8, 12), step=False), abs=1e-6)
 
 
+def test_fit_color_step_rerun_when_finished_makes_no_cache(plain, tmp_path, monkeypatch):
+    """Rerunning a finished colour-step fit takes no step and renders no scene: it saves the same model and returns the
+    logged held-out PSNRs."""
+    import prismonet.model.color_step_fit as cf
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+
+    ds = SceneDataset(shipped_samples(), split="test")
+    cfg = cf.ColorStepFitConfig(steps=4, batch_size=8, holdout=4, checkpoint_every=4)
+    first = cf.fit_color_step(cf.with_color_step(plain[0]), ds, 12, tmp_path / "run", cfg, progress=False)
+    saved = (tmp_path / "run" / "model.safetensors").read_bytes()
+
+    def no_cache(*args, **kwargs):
+        raise AssertionError("a finished fit rendered its scenes again")
+
+    monkeypatch.setattr(cf, "geometry_cache", no_cache)
+    again = cf.fit_color_step(cf.with_color_step(plain[0]), ds, 12, tmp_path / "run", cfg, progress=False)
+    assert again["steps"] == 4 and again["held_out_psnr_end"] == first["held_out_psnr_end"]
+    assert (tmp_path / "run" / "model.safetensors").read_bytes() == saved
+
+
 def test_color_step_bad_input(plain, tmp_path, capsys):
     from prismonet.assets import shipped_samples
     from prismonet.cli import main

@@ -472,6 +472,29 @@ def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
     assert float(moved[..., 0].mean()) > 0.1
 
 
+def test_fit_refiner_rerun_when_finished_makes_no_cache(shipped, tmp_path, monkeypatch):
+    """Rerunning a finished fit (as a resumable script does) takes no step and decodes no scene: it saves the same model
+    and returns the logged held-out losses."""
+    import prismonet.model.refiner_fit as rf
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+
+    model = shipped[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
+    cfg = rf.RefinerFitConfig(steps=4, batch_size=8, holdout=4, checkpoint_every=4)
+    first = rf.fit_refiner(rf.with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    saved = (tmp_path / "run" / "model.safetensors").read_bytes()
+
+    def no_cache(*args, **kwargs):
+        raise AssertionError("a finished fit decoded its scenes again")
+
+    monkeypatch.setattr(rf, "encoder_cache", no_cache)
+    again = rf.fit_refiner(rf.with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "run", cfg, progress=False)
+    assert again["steps"] == 4 and again["held_out_end"] == first["held_out_end"]
+    assert (tmp_path / "run" / "model.safetensors").read_bytes() == saved
+
+
 def test_fit_refiner_bad_input(shipped, tmp_path):
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset

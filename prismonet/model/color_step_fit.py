@@ -201,7 +201,8 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
         q.requires_grad_(True)
     opt = torch.optim.AdamW(model.color_step.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = resume_part(ckpt, "color_step.", model.color_step, opt, record, ColorStepError)
-    cache = geometry_cache(model, ds, count, progress=progress)
+    # a finished run resumed has no step left to take: no cache to make (minutes of decoding)
+    cache = geometry_cache(model, ds, count, progress=progress) if not 0 < cfg.steps <= step else None
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
     log = out / "log.jsonl"

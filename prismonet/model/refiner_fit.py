@@ -271,7 +271,9 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     weights = DistillWeights(background=0.0, texture=cfg.texture)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = resume_part(ckpt, "refiner.", model.refiner, opt, record, DistillError)
-    if cache is None:
+    if 0 < cfg.steps <= step:  # a finished run resumed: no step left to take, so no cache to make (minutes of decoding)
+        cache = None
+    elif cache is None:
         cache = encoder_cache(model, ds, count, progress=progress)
     elif len(cache["scale"]) < count:
         raise DistillError(f"the encoder cache holds {len(cache['scale'])} scenes, the targets {count}")
