@@ -1,15 +1,16 @@
 # The cube-drawing route of issue 25 (EVALUATION.md, sessions 88-89), whole and resumable: the demo search's
 # shape-trial targets on the training scenes of data/clevr3, a keep + shape refiner fitted to them from clevr3_fc,
 # two refine passes, a learnt colour step, and the validation measures after the refit and after the colour step.
-#   bash scripts/sharp_refit.sh OUT [COUNT] [STEPS]     e.g. bash scripts/sharp_refit.sh runs/s89 9000 6000
-# COUNT training scenes of targets (default 9000, all of them), STEPS refit steps (default 6000). Needs data/clevr3
-# (python3 -m prismonet data clevr --objects 3 --out data/clevr3, about 20 s). Every stage resumes where it stopped:
+#   bash scripts/sharp_refit.sh OUT [COUNT] [STEPS] [DATA]     e.g. bash scripts/sharp_refit.sh runs/s89 9000 6000
+# COUNT training scenes of targets (default 9000, all of them), STEPS refit steps (default 6000), DATA the dataset
+# (default data/clevr3: python3 -m prismonet data clevr --objects 3 --out data/clevr3, about 20 s; more training scenes:
+# `prismonet data join data/clevr3 MORE DATA`, whose val split is data/clevr3's). Every stage resumes where it stopped:
 # rerun the same command; a finished stage is skipped. Writes under OUT: distill_c3_table/, c3_table_fit/,
 # c3_table_fit_2p/, c3_table_fit_cs/, eval_fit_2p_val.txt, codes_fit_2p_val.txt, eval_fit_cs_val.txt.
 set -e
-out=$1; count=${2:-9000}; steps=${3:-6000}
-if [ -z "$out" ]; then echo "usage: bash scripts/sharp_refit.sh OUT [COUNT] [STEPS]" >&2; exit 2; fi
-data=$(cd data/clevr3 2>/dev/null && pwd -P) || { echo "sharp_refit: data/clevr3 is missing (prismonet data clevr --objects 3 --out data/clevr3)" >&2; exit 2; }
+out=$1; count=${2:-9000}; steps=${3:-6000}; data=${4:-data/clevr3}
+if [ -z "$out" ]; then echo "usage: bash scripts/sharp_refit.sh OUT [COUNT] [STEPS] [DATA]" >&2; exit 2; fi
+data=$(cd "$data" 2>/dev/null && pwd -P) || { echo "sharp_refit: $data is missing (prismonet data clevr --objects 3 --out data/clevr3)" >&2; exit 2; }
 out=$(mkdir -p "$out" && cd "$out" && pwd -P)   # absolute, as the runs record their inputs: a rerun from elsewhere still resumes
 export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
 p() { python3 -m prismonet "$@"; }

@@ -15,6 +15,7 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
     assert fig is not None and fig.shape[0] > 2 * 64 and fig.shape[1] > 4 * 64
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(metrics["scenes"]) == 2 and 0 <= metrics["mean"]["AP0.5"] <= 1 and metrics["mean"]["PSNR"] > 10
+    assert metrics["model"] == "clevr3_sharp"  # the demo's start since session 90
     printed = capsys.readouterr().out
     assert "| **mean** |" in printed and str(out / "metrics.json") in printed
     assert ("encoder, then 4 pose-search rounds, shapes tabulated at 24^3 in the first 3, every code of each category tried "
@@ -75,6 +76,11 @@ def test_data_commands(tmp_path, capsys):
     assert cv2.imread(str(tmp_path / "s.png")) is not None
     assert main(["data", "to-folder", str(ds), str(tmp_path / "f")]) == 0
     assert len(list((tmp_path / "f" / "rgb").glob("*.png"))) == 2
+    more = tmp_path / "more"
+    assert main(["data", "clevr", "--objects", "2", "--out", str(more), "--split", "2,0,0", "--seed", "5", "--workers", "1", "--quiet"]) == 0
+    assert main(["data", "join", str(ds), str(more), str(tmp_path / "j"), "--count", "1"]) == 0
+    assert "4 training scenes (3 of" in capsys.readouterr().out
+    assert main(["data", "verify", str(tmp_path / "j")]) == 0
 
 
 @pytest.mark.parametrize(

@@ -184,6 +184,25 @@ def test_missing_split(packed):
         SceneDataset(packed, "tset")
 
 
+def test_joined_training_scenes_keep_their_indices(packed, tmp_path):
+    from prismonet.data.packed import write_joined
+
+    more = tmp_path / "more"
+    generate_clevr(more, CFG, split=(4, 0, 0), seed=4, workers=1, progress=False)
+    meta = write_joined(packed, more, tmp_path / "joined", count=3)
+    train = SceneDataset(tmp_path / "joined", "train", verify=True)
+    assert len(train) == 8 and meta["counts"] == {"train": 8, "val": 2, "test": 3}
+    first, added = render_range(CFG.to_dict(), 3, 0, 5), render_range(CFG.to_dict(), 4, 0, 3)
+    for k in SCENE_ARRAYS:  # scene i < 5 is still the first dataset's scene i; then the new seed's first three
+        assert np.array_equal(np.asarray(train.arrays[k]), np.concatenate([first[k], added[k]])), k
+    val = SceneDataset(tmp_path / "joined", "val")
+    assert np.array_equal(np.asarray(val.arrays["rgb"]), render_range(CFG.to_dict(), 3, 5, 7)["rgb"])
+    with pytest.raises(DatasetError, match="same seed"):
+        write_joined(packed, packed, tmp_path / "again")
+    with pytest.raises(DatasetError, match="count must be"):
+        write_joined(packed, more, tmp_path / "too_many", count=5)
+
+
 def test_interrupted_generation_leaves_nothing_that_loads(tmp_path, monkeypatch):
     from prismonet.data import generate
 

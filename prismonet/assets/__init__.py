@@ -33,9 +33,10 @@ SHARP_MODEL = "clevr3_sharp_model"
 corrects each slot's shape latent (``--keep --shape``), fitted for 6,000 steps to 7,680 training scenes of targets from
 the demo's search with shape trials (``prismonet distill clevr3_fc ... --shape-trials --search-grid 24``;
 ``clevr3_sharp_fit_log.jsonl``), applied twice, then a colour step (1,500 steps of batch 24 on 8,192 training images,
-``clevr3_sharp_step_log.jsonl``); the whole route is ``scripts/sharp_refit.sh``, 900K images seen. Not the default:
-level with it on the image and unfiltered AP0.5, a little below on allObj, mAP and the count (EVALUATION.md, session
-89)."""
+``clevr3_sharp_step_log.jsonl``); the whole route is ``scripts/sharp_refit.sh``, 900K images seen. Not the default
+model of the other commands (feed-forward it is level with ``clevr3`` on the image and unfiltered AP0.5, a little below
+on allObj, mAP and the count: EVALUATION.md, session 89), but the demo's since session 90 (``prismonet.demo.DEMO_MODEL``:
+with the demo's search it is better on the image, mAP and cubes)."""
 KEEP_MODEL = "clevr3_keep_model"
 """The model shipped in sessions 47-55: the glimpse-refiner recipe of session 46 (below) with a refiner that also learns
 which slots to keep (``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a

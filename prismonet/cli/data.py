@@ -182,6 +182,15 @@ def cmd_subset(args) -> int:
     return 0
 
 
+def cmd_join(args) -> int:
+    from prismonet.data.packed import write_joined
+
+    meta = write_joined(Path(args.dataset), Path(args.more), Path(args.out), args.count)
+    print(f"wrote {args.out}: {meta['counts']['train']} training scenes ({meta['joined']['first_train']} of {args.dataset}, "
+          f"then {meta['joined']['train_added']} of {args.more}); its other splits are {args.dataset}'s")
+    return 0
+
+
 def cmd_blender(args) -> int:
     from prismonet.data.blender import generate_blender
 
@@ -312,3 +321,11 @@ def add_parsers(sub) -> None:
     subset.add_argument("--split", default="test")
     subset.add_argument("--count", type=arg_int(1), default=16, help="the first N scenes")
     subset.set_defaults(func=cmd_subset, outputs=[("out", "new_dir")])
+
+    join = dsub.add_parser("join", help="a packed dataset whose training split is DATASET's followed by MORE's (other splits: "
+                                        "DATASET's), e.g. more training scenes for distillation targets of DATASET")
+    join.add_argument("dataset")
+    join.add_argument("more", help="a packed dataset from the same generator settings and another seed")
+    join.add_argument("out")
+    join.add_argument("--count", type=arg_int(1), default=None, help="the first N training scenes of MORE (default all)")
+    join.set_defaults(func=cmd_join, outputs=[("out", "new_dir")])

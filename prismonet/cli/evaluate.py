@@ -139,12 +139,14 @@ def _add_evaluate(sub) -> None:
 
 
 def add_parsers(sub) -> None:
+    from prismonet.demo import DEMO_MODEL
     from prismonet.files import arg_int
 
     demo = sub.add_parser("demo", help="the main job: the shipped model decomposes the shipped test scenes")
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
     demo.add_argument("--scenes", type=arg_int(1), default=8, help="how many of the 16 shipped scenes")
-    demo.add_argument("--model", default="shipped", help="run folder or model stem (default: the shipped 3-object model)")
+    demo.add_argument("--model", default=DEMO_MODEL, help=f"run folder or model name (default: {DEMO_MODEL}, the 3-object model "
+                                                          "that draws cubes as cubes; `shipped` for clevr3)")
     demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes (default: those of --model's setting)")
     demo.add_argument("--quiet", action="store_true")
     add_inference_args(demo, search=3, fit_color=50, shape_trials=None)

@@ -132,3 +132,34 @@ def write_subset(src: Path, split: str, indices, dst: Path) -> dict:
            "subset_of": {"path": str(src), "split": split, "indices": idx.tolist()}}
     write_meta(dst, out)
     return out
+
+
+def write_joined(first: Path, more: Path, dst: Path, count: int | None = None) -> dict:
+    """A new packed dataset ``dst`` whose training split is ``first``'s followed by the first ``count`` (default all)
+    training scenes of ``more``, and whose other splits are ``first``'s: more training scenes for a run that already
+    holds per-scene products (distillation targets) of ``first``'s, whose scene indices stay valid. Both must come
+    from the same generator settings (``config``), so that the added scenes are of the same kind."""
+    first, more, dst = Path(first), Path(more), Path(dst)
+    a_meta, b_meta = read_meta(first), read_meta(more)
+    if a_meta.get("config") != b_meta.get("config") or a_meta.get("generator") != b_meta.get("generator"):
+        raise DatasetError(f"{more}: made with other generator settings than {first}; cannot join their training scenes")
+    if a_meta.get("generator") is not None and a_meta.get("seed") == b_meta.get("seed"):
+        raise DatasetError(f"{more}: the same seed as {first}, so its training scenes repeat {first}'s")
+    if (dst / "meta.json").exists():
+        raise DatasetError(f"{dst}: already holds a dataset")
+    added = open_split(more, "train")
+    n = len(added["rgb"]) if count is None else int(count)
+    if not 0 < n <= len(added["rgb"]):
+        raise DatasetError(f"{more}/train: count must be in 1..{len(added['rgb'])}, got {n}")
+    splits, counts = {}, {}
+    for split in a_meta["splits"]:
+        arrays = open_split(first, split)
+        if split == "train":
+            arrays = {k: np.concatenate([v, added[k][:n]]) for k, v in arrays.items()}
+        splits[split] = write_split(dst / split, arrays)
+        counts[split] = int(len(arrays["rgb"]))
+    out = {**a_meta, "counts": counts, "splits": splits,
+           "joined": {"first": str(first), "train_from": str(more), "train_added": n,
+                      "train_seed": b_meta.get("seed"), "first_train": int(a_meta["counts"]["train"])}}
+    write_meta(dst, out)
+    return out
