@@ -50,3 +50,20 @@ def shipped():
     with torch.no_grad():
         out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
     return model, b, out
+
+
+@pytest.fixture(scope="module")
+def clevr3():
+    """``clevr3`` (the default model of sessions 56-91, whose refiner moves and keeps slots but leaves their shapes), the
+    first four shipped test scenes, and its output on them: what the refiner-fit tests start from, since their targets
+    carry no shapes for the default's shape refiner to learn."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+
+    model, _ = load_model("clevr3")
+    model.eval()
+    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+    return model, b, out

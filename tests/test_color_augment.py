@@ -210,7 +210,7 @@ def test_recolored_scenes_are_drawn_once_per_scene():
     assert not torch.equal(other.rgb, a.rgb)
 
 
-def test_refiner_fit_with_recoloured_scenes(shipped, tmp_path, capsys):
+def test_refiner_fit_with_recoloured_scenes(clevr3, tmp_path, capsys):
     """``RefinerFitConfig.recolor``: refused with a texture or colour term (one line from the CLI), and with a cache made
     elsewhere; a fit with it runs, learns, records it and resumes."""
     import json
@@ -225,11 +225,11 @@ def test_refiner_fit_with_recoloured_scenes(shipped, tmp_path, capsys):
     for bad in (dict(texture=0.1), dict(texture=0.0, color=0.5)):
         with pytest.raises(ValueError, match="recolor needs texture = 0 and color = 0"):
             RefinerFitConfig(recolor=True, **bad)
-    assert main(["refiner", "shipped", str(shipped_samples()), "--targets", str(tmp_path / "t"), "--out",
+    assert main(["refiner", "clevr3", str(shipped_samples()), "--targets", str(tmp_path / "t"), "--out",
                  str(tmp_path / "x"), "--recolor"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert "recolor needs texture = 0" in err[-1] and not (tmp_path / "x" / "model.json").exists()
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30, texture=0.0, recolor=True)
@@ -269,7 +269,7 @@ def test_gray_scenes_share_is_drawn_once_per_scene():
         GrayScenes(ds, share=0.0)
 
 
-def test_refiner_fit_with_grey_scenes(shipped, tmp_path):
+def test_refiner_fit_with_grey_scenes(clevr3, tmp_path):
     """``RefinerFitConfig.gray_share``: refused with a texture or colour term and with a cache made elsewhere; a fit with
     it runs, learns and records the share."""
     import json
@@ -283,7 +283,7 @@ def test_refiner_fit_with_grey_scenes(shipped, tmp_path):
     for bad in (dict(texture=0.1), dict(texture=0.0, color=0.5), dict(texture=0.0, gray_share=1.5)):
         with pytest.raises(ValueError, match="gray_share must be in"):
             RefinerFitConfig(**{"gray_share": 0.5, **bad})
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30, texture=0.0, gray_share=0.5)
@@ -336,7 +336,7 @@ def test_distill_gray_fits_the_grey_images_and_says_so(tmp_path):
     assert torch.allclose(bg, bg.mean(1, keepdim=True).expand_as(bg), atol=0.02)  # a grey scene's background is grey
 
 
-def test_refiner_fit_on_grey_targets(shipped, tmp_path, capsys):
+def test_refiner_fit_on_grey_targets(clevr3, tmp_path, capsys):
     """Targets fitted on grey scenes: the fit must be set up for them (``gray_targets``, with ``gray_share`` 1) and may
     then regress textures; the command line sets it from ``targets.json`` and refuses another grey share."""
     import json
@@ -350,7 +350,7 @@ def test_refiner_fit_on_grey_targets(shipped, tmp_path, capsys):
 
     with pytest.raises(ValueError, match="need gray_share 1"):
         RefinerFitConfig(gray_targets=True, gray_share=0.5)
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     info = json.loads((tmp_path / "t" / "targets.json").read_text())
@@ -363,7 +363,7 @@ def test_refiner_fit_on_grey_targets(shipped, tmp_path, capsys):
     assert s["held_out_end"] < s["held_out_start"]
     fit = json.loads((tmp_path / "run" / "model.json").read_text())["refiner_fit"]["fit"]
     assert fit["gray_targets"] is True and fit["gray_share"] == 1.0 and fit["texture"] == 0.1
-    assert main(["refiner", "shipped", str(shipped_samples()), "--split", "test", "--targets", str(tmp_path / "t"),
+    assert main(["refiner", "clevr3", str(shipped_samples()), "--split", "test", "--targets", str(tmp_path / "t"),
                  "--out", str(tmp_path / "y"), "--gray-share", "0.5"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "fitted on grey scenes" in err[0] and not (tmp_path / "y").exists()

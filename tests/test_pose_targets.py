@@ -99,7 +99,7 @@ def test_true_poses_need_the_shape_library(tmp_path):
     assert "\n" not in str(e.value)
 
 
-def test_fit_refiner_to_the_true_poses(shipped, tmp_path):
+def test_fit_refiner_to_the_true_poses(clevr3, tmp_path):
     """Targets equal to the encoder's own slots: without the true poses there is nothing to learn (held-out loss 0);
     with them the held-out loss starts at the slots' distance from the true poses (``distill_loss`` against
     ``with_true_poses``'s targets, computed here), and the model's record says how many slots were given the truth."""
@@ -109,7 +109,7 @@ def test_fit_refiner_to_the_true_poses(shipped, tmp_path):
     from prismonet.model.io import load_model
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     b = ds.batch(list(range(12)))
     with torch.no_grad():

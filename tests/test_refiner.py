@@ -395,14 +395,14 @@ def _shifted_targets(model, ds, folder, count, shift, shape_step: float | None =
     (folder / "targets.json").write_text(json.dumps({"count": count, "chunk": 256, "num_slots": model.cfg.num_slots}))
 
 
-def test_fit_refiner_learns_a_shape_step(shipped, tmp_path):
+def test_fit_refiner_learns_a_shape_step(clevr3, tmp_path):
     """Shape targets 0.3 from every slot's code: the held-out loss starts at the shape term (D_sh x 0.09) and a
     refiner that corrects shapes takes most of it away; one that does not cannot move it."""
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.0, 0.0, 0.0], shape_step=0.3)
     cfg = RefinerFitConfig(steps=60, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=60)
@@ -417,7 +417,7 @@ def test_fit_refiner_learns_a_shape_step(shipped, tmp_path):
     assert plain["held_out_end"] > 0.9 * start
 
 
-def test_fit_refiner_learns_which_slots_to_keep(shipped, tmp_path):
+def test_fit_refiner_learns_which_slots_to_keep(clevr3, tmp_path):
     """Targets whose fit hides every slot: the refiner learns to drop them (held-out scenes too), so the saved model
     renders nothing; targets that show every slot keep them all."""
     from prismonet.assets import shipped_samples
@@ -425,7 +425,7 @@ def test_fit_refiner_learns_which_slots_to_keep(shipped, tmp_path):
     from prismonet.model.io import load_model
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     cfg = RefinerFitConfig(steps=40, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=40)
     b = ds.batch(list(range(8, 12)))  # the held-out scenes
@@ -444,7 +444,7 @@ def test_fit_refiner_learns_which_slots_to_keep(shipped, tmp_path):
             assert out.latents.params.active.all() and out.obj_mask.any()
 
 
-def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
+def test_fit_refiner_learns_a_known_correction_and_resumes(clevr3, tmp_path):
     """Targets 0.2 to the side of every encoder slot: the held-out loss falls from the shift's, the saved
     model loads with its refiner and moves its slots that way; a rerun with more steps resumes."""
     from prismonet.assets import shipped_samples
@@ -452,7 +452,7 @@ def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
     from prismonet.model.io import load_model
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=30)
@@ -472,14 +472,14 @@ def test_fit_refiner_learns_a_known_correction_and_resumes(shipped, tmp_path):
     assert float(moved[..., 0].mean()) > 0.1
 
 
-def test_fit_refiner_rerun_when_finished_makes_no_cache(shipped, tmp_path, monkeypatch):
+def test_fit_refiner_rerun_when_finished_makes_no_cache(clevr3, tmp_path, monkeypatch):
     """Rerunning a finished fit (as a resumable script does) takes no step and decodes no scene: it saves the same model
     and returns the logged held-out losses."""
     import prismonet.model.refiner_fit as rf
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     cfg = rf.RefinerFitConfig(steps=4, batch_size=8, holdout=4, checkpoint_every=4)
@@ -495,7 +495,7 @@ def test_fit_refiner_rerun_when_finished_makes_no_cache(shipped, tmp_path, monke
     assert (tmp_path / "run" / "model.safetensors").read_bytes() == saved
 
 
-def test_fit_refiner_bad_input(shipped, tmp_path):
+def test_fit_refiner_bad_input(clevr3, tmp_path):
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.distill import DistillError
@@ -508,9 +508,9 @@ def test_fit_refiner_bad_input(shipped, tmp_path):
 
     with pytest.raises(DistillError, match="no refiner"):
         fit_refiner(load_model("clevr3_fc")[0], ds, tmp_path, tmp_path / "run")
-    _shifted_targets(shipped[0], ds, tmp_path / "t", 4, [0.0, 0.0, 0.0])
+    _shifted_targets(clevr3[0], ds, tmp_path / "t", 4, [0.0, 0.0, 0.0])
     with pytest.raises(DistillError, match="held out"):
-        fit_refiner(with_refiner(shipped[0]), ds, tmp_path / "t", tmp_path / "run", RefinerFitConfig(holdout=4))
+        fit_refiner(with_refiner(clevr3[0]), ds, tmp_path / "t", tmp_path / "run", RefinerFitConfig(holdout=4))
     from prismonet.checkpoint import load_checkpoint, save_checkpoint
 
     tensors, meta = load_checkpoint(tmp_path / "t" / "chunk_00000.safetensors")
@@ -518,9 +518,9 @@ def test_fit_refiner_bad_input(shipped, tmp_path):
     save_checkpoint(tmp_path / "old" / "chunk_00000.safetensors", {k: v for k, v in tensors.items() if k != "visible"}, meta)
     (tmp_path / "old" / "targets.json").write_text((tmp_path / "t" / "targets.json").read_text())
     with pytest.raises(DistillError, match="which slots the fit shows"):
-        fit_refiner(with_refiner(shipped[0], refiner_keep=True), ds, tmp_path / "old", tmp_path / "run")
+        fit_refiner(with_refiner(clevr3[0], refiner_keep=True), ds, tmp_path / "old", tmp_path / "run")
     with pytest.raises(DistillError, match="no shape latents"):
-        fit_refiner(with_refiner(shipped[0], refiner_shape=True), ds, tmp_path / "t", tmp_path / "run")
+        fit_refiner(with_refiner(clevr3[0], refiner_shape=True), ds, tmp_path / "t", tmp_path / "run")
 
 
 @pytest.mark.parametrize("flag,words", [("--shape", "no shape latents"), ("--keep", "which slots the fit shows")])
@@ -591,7 +591,7 @@ def test_with_refiner_settings(shipped):
         with_refiner(model, num_slots=4)
 
 
-def test_fit_refiner_on_a_shared_encoder_cache(shipped, tmp_path):
+def test_fit_refiner_on_a_shared_encoder_cache(clevr3, tmp_path):
     """A refiner fitted on a precomputed encoder cache learns exactly as one that computes it; a cache that
     holds fewer scenes than the targets is refused."""
     from prismonet.assets import shipped_samples
@@ -599,7 +599,7 @@ def test_fit_refiner_on_a_shared_encoder_cache(shipped, tmp_path):
     from prismonet.model.distill import DistillError
     from prismonet.model.refiner_fit import RefinerFitConfig, encoder_cache, fit_refiner, with_refiner
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     cfg = RefinerFitConfig(steps=10, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=10)
@@ -854,7 +854,7 @@ def test_refiner_fit_refuses_a_negative_color_weight():
         RefinerFitConfig(color=-1.0)
 
 
-def test_fit_refiner_with_the_color_term(shipped, tmp_path):
+def test_fit_refiner_with_the_color_term(clevr3, tmp_path):
     """``RefinerFitConfig.color``: targets whose texture latents are the encoder's own start the colour term at 0 (the
     held-out loss is the shift's alone); targets with other texture latents add it; the run records the weight, and a
     run without it records none (so runs made before it resume)."""
@@ -864,7 +864,7 @@ def test_fit_refiner_with_the_color_term(shipped, tmp_path):
     from prismonet.model.io import load_model
     from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
 
-    model = shipped[0]
+    model = clevr3[0]
     ds = SceneDataset(shipped_samples(), split="test")
     _shifted_targets(model, ds, tmp_path / "t", 12, [0.2, 0.0, 0.0])
     cfg = RefinerFitConfig(steps=2, batch_size=4, holdout=4, checkpoint_every=2, color=1.0)

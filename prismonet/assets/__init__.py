@@ -6,8 +6,8 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-SHIPPED_MODEL = "clevr3_model"
-"""Stem of the shipped scene model: ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 56): the keep
+CLEVR3_MODEL = "clevr3_model"
+"""Stem of ``clevr3``, the default scene model of sessions 56-91 (``"shipped"`` until session 92): ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 56): the keep
 recipe of session 47 (below) with its refiner fitted to 13,312 search targets instead of 8,192, made on new training
 scenes (``data clevr --objects 3 --seed 7 --split 24576,0,0``), for 6,000 steps instead of 3,000. Stage 1 ``prismonet
 refiner clevr3_fc data/clevr3_x ... --steps 6000 --glimpse 0.375 --coords --keep`` (its log:
@@ -17,11 +17,11 @@ refiner clevr3_fc data/clevr3_x ... --steps 6000 --glimpse 0.375 --coords --keep
 ``clevr3_keep13k_color_log.jsonl``): the same detections, depth and masks bit for bit, test PSNR 25.61 -> 25.90. The
 session-56 model is this one with ``color_step`` off."""
 FIT13K_MODEL = "clevr3_fit13k_model"
-"""The shipped model's stage 1 alone (session 56): ``clevr3_fc`` with the keep refiner fitted to the 13,312 targets for
+"""``clevr3``'s stage 1 alone (session 56): ``clevr3_fc`` with the keep refiner fitted to the 13,312 targets for
 6,000 steps (its log: ``clevr3_keep13k_fit_log.jsonl``), applied twice; no stage 2. Not the default: better on PSNR
 (test 26.02 against 25.61; 26.63 with ``evaluate --supersample 3``) and mAP, worse on allObj and the count."""
 COLOR_MODEL = "clevr3_color_model"
-"""Session 57: the shipped model's stage 1 fitted to more search targets, with a learnt colour step; the one model that
+"""Session 57: ``clevr3``'s stage 1 fitted to more search targets, with a learnt colour step; the one model that
 meets every feed-forward target of issue 25 (test: AP0.5 0.977 unfiltered, AR0.5 0.968, allObj 0.917, PSNR 26.52,
 996K images seen). ``clevr3_fc`` with the keep refiner fitted to 20,736 targets for 9,000 steps
 (``clevr3_color_fit_log.jsonl``), applied twice, then a colour step (``model.color_step``, ``prismonet color-step``)
@@ -37,8 +37,11 @@ steps to 20,736 training scenes of targets from the demo's search with shape tri
 ``clevr3_sharp_step_log.jsonl``); the whole route is ``scripts/sharp_refit.sh``, 996K images seen. Test, feed-forward:
 AP0.5 0.987 (unfiltered too), AR0.5 0.977, allObj 0.939, mAP 0.754, PSNR 26.47, 77 % of cubes drawn as cubes; above
 ``clevr3`` on all of these, 0.7 points below on the count (EVALUATION.md, session 91). The demo's start since session
-90 (``prismonet.demo.DEMO_MODEL``); not yet the other commands' default (it qualified in session 91; the switch is
-pending)."""
+90; every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session 92, by a rule written before its test row
+(EVALUATION.md, session 91)."""
+DEFAULT_NAME, DEFAULT_MODEL = "clevr3_sharp", SHARP_MODEL
+"""The name and stem that ``"shipped"`` names: the default model of every command (``clevr3_sharp`` since session 92; ``clevr3``
+in sessions 56-91). Names like ``"shipped"`` move when a new model ships: a run records the weights' fingerprint."""
 KEEP_MODEL = "clevr3_keep_model"
 """The model shipped in sessions 47-55: the glimpse-refiner recipe of session 46 (below) with a refiner that also learns
 which slots to keep (``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a
@@ -70,7 +73,7 @@ SHIPPED_SAMPLES = "samples/clevr3"
 
 
 MODELS = {
-    "clevr3": SHIPPED_MODEL,
+    "clevr3": CLEVR3_MODEL,
     "clevr3_keep": KEEP_MODEL,
     "clevr3_fit13k": FIT13K_MODEL,
     "clevr3_color": COLOR_MODEL,
@@ -111,7 +114,7 @@ MODELS = {
     "blocks": "blocks_model",
     "blocks_keep": "blocks_keep_model",
 }
-"""Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3"``."""
+"""Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3_sharp"`` (``DEFAULT_MODEL``)."""
 
 
 PRIORS = {
@@ -178,11 +181,17 @@ def asset_path(name: str) -> Path:
 
 
 def shipped_model() -> Path:
-    return asset_path(SHIPPED_MODEL)
+    """The stem of the default scene model (``"shipped"``)."""
+    return asset_path(DEFAULT_MODEL)
 
 
 def shipped_samples() -> Path:
     return asset_path(SHIPPED_SAMPLES)
+
+
+def model_name(name: str | Path) -> str:
+    """The name a model goes by in records: ``"shipped"`` resolved to the default's name; anything else as given."""
+    return DEFAULT_NAME if str(name) == "shipped" else str(name)
 
 
 def model_names() -> list[str]:
@@ -192,5 +201,5 @@ def model_names() -> list[str]:
 
 def named_model(name: str) -> Path | None:
     """The stem of the shipped model called ``name`` (``"shipped"``: the default), or ``None``."""
-    stem = SHIPPED_MODEL if name == "shipped" else MODELS.get(name)
+    stem = DEFAULT_MODEL if name == "shipped" else MODELS.get(name)
     return asset_path(stem) if stem is not None and asset_path(stem + ".json").is_file() else None

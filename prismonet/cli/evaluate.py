@@ -12,6 +12,7 @@ from prismonet.cli.common import add_inference_args, inference_config
 
 
 def cmd_demo(args) -> int:
+    from prismonet.assets import model_name
     from prismonet.demo import format_demo_table, run_demo
 
     t0 = time.perf_counter()
@@ -20,7 +21,7 @@ def cmd_demo(args) -> int:
                       trial_grid=args.search_grid)
     print(format_demo_table(result))
     out = Path(args.out)
-    print(f"\n{len(result['scenes'])} scenes decomposed by the {'shipped 3-object' if args.model == 'shipped' else args.model} model "
+    print(f"\n{len(result['scenes'])} scenes decomposed by the {model_name(args.model)} model "
           f"in {time.perf_counter() - t0:.1f} s ({result['steps']}{refined_note(result['refine_passes'])})")
     print(f"figures:       {out}/scene_*.png  (input | reconstruction | depth target | depth | instances; each object alone)")
     print(f"latent scenes: {out}/scene_*.json  (prismonet export / edit / views take these)")
@@ -145,8 +146,8 @@ def add_parsers(sub) -> None:
     demo = sub.add_parser("demo", help="the main job: the shipped model decomposes the shipped test scenes")
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
     demo.add_argument("--scenes", type=arg_int(1), default=8, help="how many of the 16 shipped scenes")
-    demo.add_argument("--model", default=DEMO_MODEL, help=f"run folder or model name (default: {DEMO_MODEL}, the 3-object model "
-                                                          "that draws cubes as cubes; `shipped` for clevr3)")
+    demo.add_argument("--model", default=DEMO_MODEL, help=f"run folder or model name (default: {DEMO_MODEL}, "
+                                                          "clevr3_sharp, the 3-object model that draws cubes as cubes)")
     demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes (default: those of --model's setting)")
     demo.add_argument("--quiet", action="store_true")
     add_inference_args(demo, search=3, fit_color=50, shape_trials=None)
