@@ -17,12 +17,12 @@ from prismonet.files import write_atomic
 
 
 DEMO_MODEL = "shipped"
-"""The model the demo starts from: the default (``"shipped"``), ``clevr3_sharp`` since session 92 (the demo's start since
-session 90), the 3-object model that draws cubes as cubes
-feed-forward (refitted on 1.5x the targets in session 91). With the demo's search (shape trials from the 24^3 table,
-colour fit) on the first 1,000 test scenes: PSNR 28.83 against ``clevr3``'s 28.22, mAP 0.878 against 0.853,
-unfiltered AP0.5 0.993 against 0.991, AR0.5 0.984 against 0.983, cubes drawn as cubes 0.777 against 0.645, count right
-0.963 against 0.966 (EVALUATION.md, sessions 90-91; chosen by rules written before the rows)."""
+"""The model the demo starts from: the default (``"shipped"``), ``clevr3_sharp`` since session 92 (the demo's start
+since session 90), the 3-object model that draws cubes as cubes feed-forward (refitted on 1.5x the targets in session
+91). With the demo's search (shape trials from the 24^3 table, colour fit) on the first 1,000 test scenes: PSNR 28.83
+against ``clevr3``'s 28.22, mAP 0.878 against 0.853, unfiltered AP0.5 0.993 against 0.991, AR0.5 0.984 against 0.983,
+cubes drawn as cubes 0.777 against 0.645, count right 0.963 against 0.966 (EVALUATION.md, sessions 90-91; chosen by
+rules written before the rows)."""
 
 SHAPE_TRIAL_MODELS = ("shipped", "clevr3", "clevr3_sharp", "clevr2", "clevr4", "clevr5")
 """The models whose demo search takes the shape trials unless told otherwise: those they pay for, the Clevr models of a
@@ -97,8 +97,8 @@ def run_demo(out: str | Path, scenes: int = 8, model: str | Path = DEMO_MODEL, d
             bar.update(len(idx))
     keys = [k for k in records[0] if isinstance(records[0][k], float)]
     mean = {k: float(np.mean([r[k] for r in records])) for k in keys}
-    result = {"model": model_name(model), "inference": cfg.record(), "steps": steps, "refine_passes": net.cfg.refine_passes,
-              "scenes": records, "mean": mean}
+    result = {"model": model_name(model), "inference": cfg.record(), "steps": steps,
+              "refine_passes": net.cfg.refine_passes, "scenes": records, "mean": mean}
     write_atomic(out / "metrics.json", json.dumps(result, indent=1))
     return result
 

@@ -37,19 +37,24 @@ def gen():
     return torch.Generator().manual_seed(1234)
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    """The shipped model, the first four shipped test scenes, and the model's output on them."""
+def _on_samples(name: str):
+    """Model ``name``, the first four shipped test scenes, and the model's output on them."""
     from prismonet.assets import shipped_samples
     from prismonet.data.dataset import SceneDataset
     from prismonet.model.io import load_model
 
-    model, _ = load_model("shipped")
+    model, _ = load_model(name)
     model.eval()
     b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
     with torch.no_grad():
         out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
     return model, b, out
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    """The default model (``clevr3_sharp``), the first four shipped test scenes, and the model's output on them."""
+    return _on_samples("shipped")
 
 
 @pytest.fixture(scope="module")
@@ -57,13 +62,4 @@ def clevr3():
     """``clevr3`` (the default model of sessions 56-91, whose refiner moves and keeps slots but leaves their shapes), the
     first four shipped test scenes, and its output on them: what the refiner-fit tests start from, since their targets
     carry no shapes for the default's shape refiner to learn."""
-    from prismonet.assets import shipped_samples
-    from prismonet.data.dataset import SceneDataset
-    from prismonet.model.io import load_model
-
-    model, _ = load_model("clevr3")
-    model.eval()
-    b = SceneDataset(shipped_samples(), split="test").batch([0, 1, 2, 3])
-    with torch.no_grad():
-        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
-    return model, b, out
+    return _on_samples("clevr3")

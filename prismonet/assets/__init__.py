@@ -7,15 +7,15 @@ from importlib import resources
 from pathlib import Path
 
 CLEVR3_MODEL = "clevr3_model"
-"""Stem of ``clevr3``, the default scene model of sessions 56-91 (``"shipped"`` until session 92): ``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 56): the keep
-recipe of session 47 (below) with its refiner fitted to 13,312 search targets instead of 8,192, made on new training
-scenes (``data clevr --objects 3 --seed 7 --split 24576,0,0``), for 6,000 steps instead of 3,000. Stage 1 ``prismonet
-refiner clevr3_fc data/clevr3_x ... --steps 6000 --glimpse 0.375 --coords --keep`` (its log:
-``clevr3_keep13k_fit_log.jsonl``), stage 2 ``configs/clevr3_keep13k.json`` (``clevr3_keep13k_config.json``,
-``clevr3_keep13k_log.jsonl``); applied twice, ``refine_passes`` 2. Since session 57 with a learnt colour step
-(``model.color_step``: ``prismonet color-step clevr3 data/clevr3_x --count 8192 --steps 2000``, its log
-``clevr3_keep13k_color_log.jsonl``): the same detections, depth and masks bit for bit, test PSNR 25.61 -> 25.90. The
-session-56 model is this one with ``color_step`` off."""
+"""Stem of ``clevr3``, the default scene model of sessions 56-91 (``"shipped"`` until session 92):
+``clevr3_model.safetensors`` + ``clevr3_model.json`` (since session 56): the keep recipe of session 47 (below) with its
+refiner fitted to 13,312 search targets instead of 8,192, made on new training scenes (``data clevr --objects 3 --seed 7
+--split 24576,0,0``), for 6,000 steps instead of 3,000. Stage 1 ``prismonet refiner clevr3_fc data/clevr3_x ... --steps
+6000 --glimpse 0.375 --coords --keep`` (its log: ``clevr3_keep13k_fit_log.jsonl``), stage 2
+``configs/clevr3_keep13k.json`` (``clevr3_keep13k_config.json``, ``clevr3_keep13k_log.jsonl``); applied twice,
+``refine_passes`` 2. Since session 57 with a learnt colour step (``model.color_step``: ``prismonet color-step clevr3
+data/clevr3_x --count 8192 --steps 2000``, its log ``clevr3_keep13k_color_log.jsonl``): the same detections, depth and
+masks bit for bit, test PSNR 25.61 -> 25.90. The session-56 model is this one with ``color_step`` off."""
 FIT13K_MODEL = "clevr3_fit13k_model"
 """``clevr3``'s stage 1 alone (session 56): ``clevr3_fc`` with the keep refiner fitted to the 13,312 targets for
 6,000 steps (its log: ``clevr3_keep13k_fit_log.jsonl``), applied twice; no stage 2. Not the default: better on PSNR
@@ -40,8 +40,8 @@ AP0.5 0.987 (unfiltered too), AR0.5 0.977, allObj 0.939, mAP 0.754, PSNR 26.47, 
 90; every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session 92, by a rule written before its test row
 (EVALUATION.md, session 91)."""
 DEFAULT_NAME, DEFAULT_MODEL = "clevr3_sharp", SHARP_MODEL
-"""The name and stem that ``"shipped"`` names: the default model of every command (``clevr3_sharp`` since session 92; ``clevr3``
-in sessions 56-91). Names like ``"shipped"`` move when a new model ships: a run records the weights' fingerprint."""
+"""The name and stem that ``"shipped"`` names: the default model of every command (``clevr3_sharp`` since session 92;
+``clevr3`` in sessions 56-91). Names like ``"shipped"`` move when a new model ships: a run records the weights' fingerprint."""
 KEEP_MODEL = "clevr3_keep_model"
 """The model shipped in sessions 47-55: the glimpse-refiner recipe of session 46 (below) with a refiner that also learns
 which slots to keep (``model.refiner_keep``: a keep logit per slot, fitted to whether the search's fit shows the slot; a
@@ -114,7 +114,8 @@ MODELS = {
     "blocks": "blocks_model",
     "blocks_keep": "blocks_keep_model",
 }
-"""Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3_sharp"`` (``DEFAULT_MODEL``)."""
+"""Scene models by name (``load_model(NAME)``, ``--model NAME``); ``"shipped"`` is ``"clevr3_sharp"``
+(``DEFAULT_NAME``)."""
 
 
 PRIORS = {
