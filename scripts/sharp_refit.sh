@@ -1,6 +1,6 @@
 # The cube-drawing route of issue 25 (EVALUATION.md, sessions 88-89), whole and resumable: the demo search's
 # shape-trial targets on the training scenes of data/clevr3, a keep + shape refiner fitted to them from clevr3_fc,
-# two refine passes, a learnt colour step, and the validation measures after the refit and after the colour step.
+# two refine passes, a learnt colour step (two passes since session 92), and the validation measures after the refit and after the colour step.
 #   bash scripts/sharp_refit.sh OUT [COUNT] [STEPS] [DATA]     e.g. bash scripts/sharp_refit.sh runs/s89 9000 6000
 # COUNT training scenes of targets (default 9000, all of them), STEPS refit steps (default 6000), DATA the dataset
 # (default data/clevr3: python3 -m prismonet data clevr --objects 3 --out data/clevr3, about 20 s; more training scenes:
@@ -22,6 +22,6 @@ p refiner clevr3_fc "$data" --targets "$out/distill_c3_table" --out "$out/c3_tab
 [ -f "$out/c3_table_fit_2p/model.json" ] || python3 scripts/set_refine_passes.py "$out/c3_table_fit" 2 "$out/c3_table_fit_2p"
 once "$out/eval_fit_2p_val.txt" p evaluate "$out/c3_table_fit_2p" "$data" --split val --limit 1000 --batch 64
 once "$out/codes_fit_2p_val.txt" python3 scripts/shape_codes.py "$out/c3_table_fit_2p" "$data" --split val --limit 400
-p color-step "$out/c3_table_fit_2p" "$data" --out "$out/c3_table_fit_cs" --count 8192 --steps 1500 --batch 24 --quiet
+p color-step "$out/c3_table_fit_2p" "$data" --out "$out/c3_table_fit_cs" --count 8192 --steps 1500 --batch 24 --passes 2 --quiet
 once "$out/eval_fit_cs_val.txt" p evaluate "$out/c3_table_fit_cs" "$data" --split val --limit 1000 --batch 64
 echo "sharp_refit: done ($out)"

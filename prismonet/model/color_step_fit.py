@@ -79,9 +79,9 @@ def with_color_step(model, channels: tuple[int, ...] | None = None, fc: tuple[in
 
 
 def without_color_step(model):
-    """A copy of a scene model without its colour step (``color_step`` off; the other weights shared as they are): the
-    model as it was before the step was fitted, bit for bit."""
-    return rebuilt(model, "color_step.", color_step=False).train(model.training)
+    """A copy of a scene model without its colour step (``color_step`` off, ``color_step_passes`` back to 1; the other
+    weights shared as they are): the model as it was before the step was fitted, bit for bit."""
+    return rebuilt(model, "color_step.", color_step=False, color_step_passes=1).train(model.training)
 
 
 @torch.no_grad()
