@@ -9,6 +9,7 @@ About 40 s per model on two threads. Prints JSON.
 
 import argparse
 import json
+import sys
 
 from prismonet.assets import shipped_samples
 from prismonet.data.dataset import SceneDataset
@@ -33,7 +34,11 @@ def main() -> None:
     ap.add_argument("models", nargs="*", default=["shipped", "clevr3"])
     args = ap.parse_args()
     ds = SceneDataset(shipped_samples(), split="test")
-    print(json.dumps({name: pins(name, ds) for name in args.models}, indent=1))
+    try:  # a bad name or a damaged model: one line (CheckpointError is a ValueError)
+        rows = {name: pins(name, ds) for name in args.models}
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"sample_pins: error: {str(e).splitlines()[0]}")
+    print(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

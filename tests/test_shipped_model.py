@@ -218,3 +218,20 @@ def test_shipped_names_the_default_and_records_resolve_it():
     assert named_model("shipped") == named_model(DEFAULT_NAME) == shipped_model() == asset_path(DEFAULT_MODEL)
     assert named_model("clevr3") == asset_path("clevr3_model") != shipped_model()
     assert model_name("shipped") == "clevr3_sharp" and model_name("clevr3") == "clevr3" and model_name("runs/x") == "runs/x"
+
+
+def test_sample_pins_script_measures_and_refuses_a_bad_name_in_one_line(script, monkeypatch, capsys):
+    """``scripts/sample_pins.py``: the figures this file pins, per model named (here the default's feed-forward AP0.5
+    and cube count as MEASURED says); an unknown model name ends in one line on stderr."""
+    import json
+    import sys
+
+    pins = script("sample_pins")
+    monkeypatch.setattr(sys, "argv", ["sample_pins.py", "shipped"])
+    pins.main()
+    row = json.loads(capsys.readouterr().out)["shipped"]
+    assert row["ff"]["AP0.5"] >= MEASURED["AP0.5"] - AP_MARGIN and row["ff_cubes"][1]["cube"] == 14
+    monkeypatch.setattr(sys, "argv", ["sample_pins.py", "no_such_model"])
+    with pytest.raises(SystemExit) as e:
+        pins.main()
+    assert "sample_pins: error: " in str(e.value) and "no_such_model" in str(e.value) and "\n" not in str(e.value)

@@ -140,6 +140,7 @@ def _add_evaluate(sub) -> None:
 
 
 def add_parsers(sub) -> None:
+    from prismonet.assets import model_name
     from prismonet.demo import DEMO_MODEL
     from prismonet.files import arg_int
 
@@ -147,7 +148,7 @@ def add_parsers(sub) -> None:
     demo.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
     demo.add_argument("--scenes", type=arg_int(1), default=8, help="how many of the 16 shipped scenes")
     demo.add_argument("--model", default=DEMO_MODEL, help=f"run folder or model name (default: {DEMO_MODEL}, "
-                                                          "clevr3_sharp, the 3-object model that draws cubes as cubes)")
+                                                          f"{model_name(DEMO_MODEL)})")
     demo.add_argument("--data", help="a packed dataset with a test split instead of the shipped scenes (default: those of --model's setting)")
     demo.add_argument("--quiet", action="store_true")
     add_inference_args(demo, search=3, fit_color=50, shape_trials=None)

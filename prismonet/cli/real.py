@@ -140,12 +140,13 @@ def _percentile(text: str) -> float | None:
 
 
 def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
+    from prismonet.assets import DEFAULT_NAME
     from prismonet.files import arg_float
 
     if photos:
         p.add_argument("photos", nargs="+")
     p.add_argument("--out", required=True)
-    p.add_argument("--model", default="shipped", help="run folder or model stem (default: shipped, the 3-object clevr3_sharp); "
+    p.add_argument("--model", default="shipped", help=f"run folder or model stem (default: shipped, {DEFAULT_NAME}); "
                    "with a ground calibration, photos are rectified to its training view")
     p.add_argument("--unit", type=arg_float(1e-6, 1e6, positive=True), metavar="METRES",
                    help="metres per model unit (with a ground calibration; default: derived so that the photo camera is as far "

@@ -153,10 +153,11 @@ class _Op(argparse.Action):
 
 
 def add_parsers(sub) -> None:
+    from prismonet.assets import DEFAULT_NAME
     from prismonet.files import MAX_IMAGE_SIDE, MAX_MESH_RESOLUTION, arg_float, arg_int
 
     ex = sub.add_parser("export", help="meshes (PLY/OBJ/GLB) and point clouds of an inferred or saved scene")
-    ex.add_argument("--model", default="shipped", help="run folder or model stem (default: shipped, the 3-object clevr3_sharp)")
+    ex.add_argument("--model", default="shipped", help=f"run folder or model stem (default: shipped, {DEFAULT_NAME})")
     ex.add_argument("--scene", help="a latent-scene JSON (from reconstruct, export or edit)")
     ex.add_argument("--data", help="or infer the scene from this dataset")
     ex.add_argument("--index", type=int, default=0, help="scene index in --data")
