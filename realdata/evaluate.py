@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prismonet.assets import PHOTO_NAME
 from prismonet.files import write_atomic
 from realdata.boxes import box_iou
 from realdata.color import HIGHLIGHT_PERCENTILE
@@ -108,7 +109,7 @@ def photo_measures(label, detections: dict, outlines: list, photo_shape: tuple[i
             "ignored_boxes": pred[ignored].round(1).tolist()}
 
 
-def evaluate_photos(labels_dir, out, model="shipped", calibration=None, box=None, normalize="auto", gain=None,
+def evaluate_photos(labels_dir, out, model=PHOTO_NAME, calibration=None, box=None, normalize="auto", gain=None,
                     objects=None, min_pixels: int = 25, inference=None, progress: bool = True, metres_per_unit=None,
                     elevation=None, label_elevations: bool = False, tiling=None, highlights=HIGHLIGHT_PERCENTILE,
                     gray_tint: str = "off", gray_inference=None) -> dict:

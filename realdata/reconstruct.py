@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prismonet.assets import PHOTO_NAME, model_name
 from prismonet.files import write_atomic
 from realdata.color import HIGHLIGHT_PERCENTILE
 
@@ -34,7 +35,8 @@ def found_objects(instance: torch.Tensor, num_slots: int, min_pixels: int = MIN_
     return [k for k in range(num_slots) if int(counts[k]) >= min_pixels]
 
 
-def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | Path = "shipped", calibration: str | Path | None = None,
+def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | Path = PHOTO_NAME,
+                       calibration: str | Path | None = None,
                        box: tuple[int, int, int, int] | None = None, normalize: str = "auto", gain=None,
                        objects: int | None = None, min_pixels: int = MIN_PIXELS, mesh_format: str = "ply",
                        resolution: int = 40, inference=None, progress: bool = True,
@@ -136,6 +138,7 @@ def reconstruct_photos(photos: list[str | Path], out: str | Path, model: str | P
     if tiles > 1:
         results = [_merged(photo, _photo_u8(photo, shown), [r for r in results if r["photo"] == photo], out, net,
                            resolution if meshes else None, mesh_format) for photo in dict.fromkeys(r["photo"] for r in results)]
+    results = [{**r, "model": model_name(model)} for r in results]  # which model read it, in every record
     write_atomic(out / "summary.json", json.dumps(results, indent=1))
     return results
 

@@ -275,8 +275,10 @@ def test_legal_oddities_are_accepted(files, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     rc, out, err = run(["data", "subset", str(files["good"]), str(tmp_path / "empty"), "--split", "test", "--count", "2"], capsys)
     assert rc == 0, err
-    # a ground calibration: the photo is rectified to the model's view, the world map recorded
-    rc, out, err = run(["real", "prepare", str(PHOTO), "--out", str(tmp_path / "g"), "--camera", str(files["ground_ok"])], capsys)
+    # a ground calibration: the photo is rectified to the model's view, the world map recorded (the Clevr model's
+    # camera, which the fixture's calibration was made for)
+    rc, out, err = run(["real", "prepare", str(PHOTO), "--out", str(tmp_path / "g"), "--camera",
+                        str(files["ground_ok"]), "--model", "shipped"], capsys)
     assert rc == 0 and "rectified to the model's view at 0.04 m per model unit (derived)" in out, out + err
     rec = json.loads(next((tmp_path / "g" / "annotations").glob("*.json")).read_text())["prepare"]
     assert rec["coverage"] == 1.0 and rec["world"]["metres_per_unit"] == pytest.approx(0.04)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from prismonet.assets import DEFAULT_NAME, PHOTO_NAME
 from prismonet.model.inference import InferenceConfig
 from prismonet.geometry.camera import Camera, intrinsics_matrix, project
 from realdata.color import MAX_GAIN, MAX_TINT, ColorMapping, estimate_table_color, mapping_limited, spare_highlights, table_mapping
@@ -293,8 +294,8 @@ def test_calibration_from_another_resolution_is_refused(tmp_path):
 
 
 def test_real_reconstruct_runs_end_to_end_on_the_shipped_photos(tmp_path, capsys):
-    """The whole real-photo path with the shipped model: every output finite, a mesh per photo
-    with objects, and at least one object found on blox.jpg."""
+    """The whole real-photo path with the photo commands' default model (the real-tabletop one, recorded by name): every
+    output finite, a mesh per photo with objects, and at least one object found on blox.jpg."""
     import json
 
     import trimesh
@@ -305,6 +306,7 @@ def test_real_reconstruct_runs_end_to_end_on_the_shipped_photos(tmp_path, capsys
     assert main(["real", "reconstruct", *photos, "--out", str(tmp_path), "--quiet"]) == 0
     summary = {Path(r["photo"]).name: r for r in json.loads((tmp_path / "summary.json").read_text())}
     assert set(summary) == {"blox.jpg", "coffee.jpg", "coins.png", "smarties.png", "stuff.jpg"}
+    assert {r["model"] for r in summary.values()} == {PHOTO_NAME} and PHOTO_NAME == "tabletop_keep"
     assert summary["blox.jpg"]["objects_found"] >= 1
     for r in summary.values():
         assert r["finite"]
@@ -327,12 +329,15 @@ def test_real_reconstruct_refinement_fits_the_photo_better(tmp_path):
 
 
 def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
-    """The kept slots minimise the colour error over all subsets, the first three steps included."""
+    """The kept slots minimise the colour error over all subsets, the first three steps included (the 3-slot
+    Clevr model, named: the photo commands' default has 8 slots)."""
     from realdata.reconstruct import reconstruct_photos
 
-    (plain,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e0", progress=False)
-    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", inference=InferenceConfig(extra_slots=2), progress=False)
+    (plain,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e0", "shipped", progress=False)
+    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", "shipped",
+                                  inference=InferenceConfig(extra_slots=2), progress=False)
     assert extra["inference"]["extra_slots"] == 2 and extra["finite"] and extra["objects_found"] <= 3
+    assert plain["model"] == extra["model"] == DEFAULT_NAME  # "shipped" recorded by the name it stands for
     assert extra["psnr"]["encoder"] >= plain["psnr"]["encoder"] - 1e-6, (plain["psnr"], extra["psnr"])
     with pytest.raises(ValueError, match="non-negative"):
         InferenceConfig(extra_slots=-1)
@@ -341,11 +346,12 @@ def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
 @pytest.mark.parametrize("how", ["stop", "prune"])
 def test_real_reconstruct_with_dropped_slots_saves_the_kept_ones(tmp_path, how):
     """With stopping or pruning some slots are inactive: the saved scene holds the decoded slots, and the
-    mesh the found ones (their indices are the output's slot indices, not the saved scene's)."""
+    mesh the found ones (their indices are the output's slot indices, not the saved scene's). The 3-slot Clevr model."""
     from realdata.reconstruct import reconstruct_photos
     from prismonet.scene import LatentScene
 
-    (r,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path, inference=InferenceConfig.of(**{how: True}), progress=False)
+    (r,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path, "shipped", inference=InferenceConfig.of(**{how: True}),
+                              progress=False)
     scene = LatentScene.load(r["scene"])
     assert r["finite"] and scene.bg_color.shape == (3,)
     assert r["objects_found"] <= scene.num_objects <= 3
@@ -374,6 +380,7 @@ def test_real_reconstruct_elevation_moves_the_assumed_camera(tmp_path, capsys):
     T = np.asarray(json.loads((tmp_path / "r" / "stuff.json").read_text())["camera"]["T_world_cam"])
     assert math.degrees(math.asin(-T[2, 2])) == pytest.approx(80.0, abs=1e-4)
     capsys.readouterr()
-    assert main(["real", "reconstruct", photo, "--elevation", "80", "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    assert main(["real", "reconstruct", photo, "--model", "shipped", "--elevation", "80", "--out", str(tmp_path / "s"),
+                 "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "takes the camera as an input" in err[0], err

@@ -86,7 +86,8 @@ def cmd_reconstruct(args) -> int:
                 x, y, z = obj["position_table_m"]
                 print(f"      object {obj['slot']}: at ({x:.3f}, {y:.3f}, {z:.3f}) m on the table, half-size {obj['scale_m']:.3f} m")
     _warn(recs)
-    print(f"wrote figures, latent scenes, meshes and summary.json to {args.out} ({cfg.describe()}{_gray_note(args)})")
+    print(f"wrote figures, latent scenes, meshes and summary.json to {args.out} (model {_name(args)}; {cfg.describe()}"
+          f"{_gray_note(args)})")
     return 0
 
 
@@ -104,9 +105,16 @@ def cmd_evaluate(args) -> int:
                              elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args),
                              highlights=args.highlights, gray_tint=args.gray_tint, gray_inference=_gray_inference(args))
     print(format_real_table(result))
-    print(f"({cfg.describe()}{_gray_note(args)}; boxes from the model's instance masks mapped back to the photos; "
+    print(f"(model {_name(args)}; {cfg.describe()}{_gray_note(args)}; boxes from the model's instance masks mapped "
+          "back to the photos; "
           f"figures and {args.out}/real_evaluation.json)")
     return 0
+
+
+def _name(args) -> str:
+    from prismonet.assets import model_name
+
+    return model_name(args.model)
 
 
 def _gray_inference(args):
@@ -140,14 +148,17 @@ def _percentile(text: str) -> float | None:
 
 
 def _add_photo_args(p: argparse.ArgumentParser, photos: bool = True) -> None:
-    from prismonet.assets import DEFAULT_NAME
+    from prismonet.assets import PHOTO_NAME
     from prismonet.files import arg_float
 
     if photos:
         p.add_argument("photos", nargs="+")
     p.add_argument("--out", required=True)
-    p.add_argument("--model", default="shipped", help=f"run folder or model stem (default: shipped, {DEFAULT_NAME}); "
-                   "with a ground calibration, photos are rectified to its training view")
+    p.add_argument("--model", default=PHOTO_NAME,
+                   help=f"model name, run folder or stem (default: {PHOTO_NAME}, the real-tabletop model; 'shipped' is "
+                        "the 3-object Clevr model, which does not decompose photos); with a ground calibration, "
+                        "photos are rectified to a one-camera model's training view, or keep their own camera for a "
+                        "camera-frame model")
     p.add_argument("--unit", type=arg_float(1e-6, 1e6, positive=True), metavar="METRES",
                    help="metres per model unit (with a ground calibration; default: derived so that the photo camera is as far "
                         "from the table point it looks at as the training camera)")
