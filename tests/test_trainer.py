@@ -164,15 +164,14 @@ def test_bad_checkpoints(data, tmp_path):
 
 
 def test_ddp_two_cpu_processes(data, tmp_path):
-    """The same training under torchrun with 2 processes (gloo). Without input noise, DDP's average
-    of the two half-batch gradients is the full-batch gradient, so the result must equal a
-    single-process run of the same config."""
+    """The same training under torchrun with 2 processes (gloo). Every rank draws the global batch's scene indices and
+    noise and keeps its share, so DDP's average of the two half-batch gradients is the full-batch gradient: the result
+    must equal a single-process run of the same config, input noise included; the logged losses are the whole batch's."""
     run = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
            "-m", "prismonet", "train", "-", "--out", str(run), "--quiet",
-           "--set", f"data={data}", "--set", "steps=3", "--set", "batch_size=4", "--set", "log_every=1", "--set", "checkpoint_every=3",
-           "--set", "input_noise=0"]
+           "--set", f"data={data}", "--set", "steps=3", "--set", "batch_size=4", "--set", "log_every=1", "--set", "checkpoint_every=3"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads([line for line in proc.stdout.splitlines() if line.startswith("{")][0])
@@ -180,12 +179,40 @@ def test_ddp_two_cpu_processes(data, tmp_path):
     rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert len(rows) == 3 and all(math.isfinite(r["total"]) for r in rows)
     ddp, _ = load_model(run)  # rank 0 wrote a loadable model
-    single = train(TrainConfig(data=str(data), steps=3, batch_size=4, log_every=1, checkpoint_every=3, input_noise=0.0),
+    single = train(TrainConfig(data=str(data), steps=3, batch_size=4, log_every=1, checkpoint_every=3),
                    tmp_path / "single", progress=False)
+    assert TrainConfig().input_noise > 0  # the noise is on: it is drawn for the global batch
     ref, _ = load_model(tmp_path / "single")
     for (k, v), (_, w) in zip(ddp.state_dict().items(), ref.state_dict().items()):
         assert torch.allclose(v, w, atol=1e-5, rtol=1e-4), k
+    solo = [json.loads(line) for line in (tmp_path / "single" / "log.jsonl").read_text().splitlines()]
+    for r, s in zip(rows, solo):  # the logged losses are the global batch's, not rank 0's half
+        assert r["total"] == pytest.approx(s["total"], rel=1e-4), (r, s)
     assert single["last"]["total"] != 0
+
+
+def _finite_rank(rank: int, port: int, queue) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    torch.distributed.init_process_group("gloo", rank=rank, world_size=2)
+    from prismonet.model.trainer import _finite_everywhere
+
+    try:
+        nan_on_one = _finite_everywhere(torch.tensor(float("nan") if rank == 1 else 1.0), 2)
+        finite = _finite_everywhere(torch.tensor(2.0), 2)
+        queue.put((rank, nan_on_one, finite))
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def test_a_non_finite_loss_on_one_rank_skips_the_step_on_every_rank():
+    """Under DDP a rank that skipped its backward alone would leave the other waiting in the gradient all-reduce for
+    good: the finite check is agreed over the ranks (a NaN on rank 1 reads as non-finite on rank 0 too)."""
+    import torch.multiprocessing as mp
+
+    queue = mp.get_context("spawn").SimpleQueue()
+    mp.spawn(_finite_rank, args=(29523, queue), nprocs=2, join=True)
+    got = sorted(queue.get() for _ in range(2))
+    assert got == [(0, False, True), (1, False, True)]
 
 
 def test_sigterm_saves_a_checkpoint_then_resumes(data, tmp_path):

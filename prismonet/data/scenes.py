@@ -97,6 +97,10 @@ class SceneBatch:
     def __len__(self) -> int:
         return self.rgb.shape[0]
 
+    def rows(self, which: slice | torch.Tensor) -> "SceneBatch":
+        """The scenes ``which`` selects (a slice or an index tensor along B), every field alike."""
+        return SceneBatch(**{f.name: getattr(self, f.name)[which] for f in fields(SceneBatch)})
+
     def to(self, device: torch.device | str) -> "SceneBatch":
         """The batch on ``device`` (itself if it is there)."""
         if self.rgb.device == torch.device(device):

@@ -347,6 +347,54 @@ def make_inputs(batch, cfg: TrainConfig, g: torch.Generator) -> tuple[torch.Tens
     return image, depth
 
 
+def _step_inputs(ds, targets, cfg: TrainConfig, step: int, device: torch.device, rank: int = 0, world: int = 1):
+    """Step ``step``'s batch, distillation targets, noisy input image and target depth, for ``rank`` of ``world``.
+
+    Every random quantity is drawn for the whole global batch from the step's generator (scene indices, colour
+    augmentations, noise), and each rank then keeps its share (rows ``rank::world``): the processes of a distributed
+    run see exactly the inputs that one process would, so its gradient (the ranks' mean) is the single-process one
+    up to rounding."""
+    g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+    idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)
+    batch = ds.batch(idx.tolist()).to(device)
+    looked_up = None if targets is None else targets.lookup(idx.to(device))
+    # colours first, so that an image made grey afterwards stays grey (no draw when they are off)
+    batch, looked_up = hue_batch(batch, looked_up, cfg, g)
+    batch = recolor_batch(batch, cfg, g)
+    batch, looked_up, grey = gray_batch(batch, looked_up, cfg, g)
+    image, target_depth = make_inputs(batch, cfg, g)
+    if grey is not None:  # a greyscale sensor's noise is one channel's: the grey inputs stay grey
+        from prismonet.data.gray import to_gray
+
+        image = to_gray(image, grey)
+    if world == 1:
+        return batch, looked_up, image, target_depth
+    share = slice(rank, None, world)
+    if looked_up is not None:
+        looked_up = ({k: v[share] for k, v in looked_up[0].items()}, looked_up[1][share])
+    return batch.rows(share), looked_up, image[share], target_depth[share]
+
+
+def _finite_everywhere(total: torch.Tensor, world: int) -> bool:
+    """Whether the loss is finite on every rank (one all-reduce when ``world`` > 1): a rank that skipped its backward
+    alone would leave the others waiting in DDP's gradient all-reduce for good."""
+    finite = math.isfinite(float(total.detach()))
+    if world == 1:
+        return finite
+    flag = torch.tensor([1.0 if finite else 0.0], device=total.device)
+    torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MIN)
+    return bool(flag.item() > 0)
+
+
+def _mean_over_ranks(scalars: dict[str, float], device: torch.device) -> dict[str, float]:
+    """The ranks' mean of each logged loss scalar: each rank's loss is its share's mean, so theirs is the batch's."""
+    keys = sorted(scalars)
+    v = torch.tensor([float(scalars[k]) for k in keys], dtype=torch.float64, device=device)
+    torch.distributed.all_reduce(v)
+    v /= torch.distributed.get_world_size()
+    return dict(zip(keys, v.tolist()))
+
+
 def image_grid(batch, out, path: Path, n: int = 4) -> None:
     """PNG: per scene, input | reconstruction | depth target | depth | instances, each panel labelled."""
     import numpy as np
@@ -476,26 +524,14 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             if governor is not None:
                 governor.before_step()
             t0 = time.perf_counter()
-            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-            idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)[rank::world]
-            batch = ds.batch(idx.tolist()).to(device)
-            looked_up = None if targets is None else targets.lookup(idx.to(device))
-            # colours first, so that an image made grey afterwards stays grey (no draw when they are off)
-            batch, looked_up = hue_batch(batch, looked_up, cfg, g)
-            batch = recolor_batch(batch, cfg, g)
-            batch, looked_up, grey = gray_batch(batch, looked_up, cfg, g)
-            image, target_depth = make_inputs(batch, cfg, g)
-            if grey is not None:  # a greyscale sensor's noise is one channel's: the grey inputs stay grey
-                from prismonet.data.gray import to_gray
-
-                image = to_gray(image, grey)
+            batch, looked_up, image, target_depth = _step_inputs(ds, targets, cfg, step, device, rank, world)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(cfg, step)
             net.train()
             out = net(image, batch.K, batch.T_world_cam, batch.ground_z)
             terms = compute_losses(model, out, batch, cfg.loss, step, target_depth, looked_up)
             opt.zero_grad(set_to_none=True)
-            if not math.isfinite(float(terms.total.detach())):
+            if not _finite_everywhere(terms.total, world):  # every rank skips the step together, or none does
                 nonfinite += 1
                 if nonfinite > cfg.max_nonfinite:
                     raise TrainingError(f"stopping at step {step}: {nonfinite} non-finite losses (max_nonfinite={cfg.max_nonfinite})")
@@ -510,9 +546,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, progress: bool = True, stop_aft
             if governor is not None:
                 governor.after_step(dt)
             last = terms.scalars()
+            logged = step % cfg.log_every == 0 or step == cfg.steps
+            if logged and world > 1:  # the global batch's losses, not rank 0's share (every rank takes part)
+                last = _mean_over_ranks(last, device)
             if rank == 0:
                 bar.update(1)
-                if step % cfg.log_every == 0 or step == cfg.steps:
+                if logged:
                     for k, v in last.items():
                         writer.add_scalar(f"loss/{k}", v, step)
                     writer.add_scalar("train/nonfinite", nonfinite, step)
