@@ -125,14 +125,11 @@ def main() -> int:
     finally:
         if load is not None:
             load.kill()
-    base = statistics.median(times[names[0]])
+    from bench_step import print_table
+
     state = "loaded (one busy process)" if args.load else "quiet"
     print(f"training step, batch 8, {state}, {args.rounds} x {args.steps - WARM} steps per variant")
-    print(f"| processes x threads | median ms | min | max | speed-up vs {names[0]} |")
-    print("|---|---|---|---|---|")
-    for n in names:
-        m = statistics.median(times[n])
-        print(f"| {n} | {1e3 * m:.1f} | {1e3 * min(times[n]):.1f} | {1e3 * max(times[n]):.1f} | {base / m:.2f}x |")
+    print_table(times, names, "processes x threads")
     return 0
 
 

@@ -190,14 +190,19 @@ def main(argv: list[str] | None = None) -> int:
                 t = step(1000 * r + i)
                 if r > 0:
                     times[n].append(t)
-    base = statistics.median(times[names[0]])
     print(f"training step, batch {step.cfg.batch_size}, {args.threads} thread(s), {args.rounds} x {args.steps} steps per variant")
-    print("| variant | median ms | min | max | speed-up vs " + names[0] + " |")
+    print_table(times, names)
+    return 0
+
+
+def print_table(times: dict[str, list[float]], names: list[str], first: str = "variant") -> None:
+    """A markdown table of each variant's step times in ms (median, min, max) and its speed-up against the first's."""
+    base = statistics.median(times[names[0]])
+    print(f"| {first} | median ms | min | max | speed-up vs {names[0]} |")
     print("|---|---|---|---|---|")
     for n in names:
         m = statistics.median(times[n])
         print(f"| {n} | {1e3 * m:.1f} | {1e3 * min(times[n]):.1f} | {1e3 * max(times[n]):.1f} | {base / m:.2f}x |")
-    return 0
 
 
 if __name__ == "__main__":

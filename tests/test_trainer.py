@@ -392,3 +392,15 @@ def test_init_from_a_model_of_another_architecture_is_a_clear_error(data, tmp_pa
     with pytest.raises(CheckpointError, match=r"init_from .*src: does not fit this configuration"):
         train(wide, tmp_path / "ft", progress=False)
     assert not (tmp_path / "ft" / "checkpoint.safetensors").exists()
+
+
+def test_bench_ddp_times_the_trainer_step_and_refuses_bad_variants(script, data, monkeypatch, capsys):
+    """``scripts/bench_ddp.py`` (BENCHMARKS.md, session 93): its step is the trainer's, timed per step after the warm-up
+    ones (here one process of one thread on a tiny set); a variant it does not know ends in one line on stderr."""
+    bench = script("bench_ddp")
+    times = bench._steps(str(data), 0, bench.WARM + 2, 1)
+    assert len(times) == 2 and all(t > 0 for t in times)
+    monkeypatch.setattr(sys, "argv", ["bench_ddp.py", "--variants", "1x2,3x3"])
+    assert bench.main() == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("bench_ddp: error: ") and "3x3" in err[0]
