@@ -157,6 +157,8 @@ def _measured(labels, recs: list[dict], dest) -> dict:
         m.update(photo=str(lab.photo), psnr=rec["psnr"], figure=rec["figure"], camera=rec["camera"],
                  reading=f"{len(rec['tiles'])} tiles" if "tiles" in rec else f"zoomed out {rec['prepare']['zoom_out']:g}x"
                  if "zoom_out" in rec.get("prepare", {}) else "whole")
+        if "model" in rec:  # runs before session 93 did not record it
+            m["model"] = rec["model"]
         rows.append(m)
     result = {"photos": rows, "overall": overall_measures(rows)}
     write_atomic(Path(dest), json.dumps(result, indent=1))
