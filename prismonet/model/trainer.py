@@ -353,7 +353,9 @@ def _step_inputs(ds, targets, cfg: TrainConfig, step: int, device: torch.device,
     Every random quantity is drawn for the whole global batch from the step's generator (scene indices, colour
     augmentations, noise), and each rank then keeps its share (rows ``rank::world``): the processes of a distributed
     run see exactly the inputs that one process would, so its gradient (the ranks' mean) is the single-process one
-    up to rounding."""
+    up to rounding for every loss that is a mean over the batch's scenes. The distillation terms average over the
+    scenes that have targets, so where the shares hold different numbers of those, the ranks' mean weighs them
+    differently from one process."""
     g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
     idx = torch.randint(len(ds), (cfg.batch_size,), generator=g)
     batch = ds.batch(idx.tolist()).to(device)
