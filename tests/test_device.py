@@ -208,3 +208,35 @@ def test_a_device_name_pytorch_does_not_know_is_one_clear_line(command, tmp_path
     assert main([*command, "--out", str(tmp_path / "o"), "--device", "gpu"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].endswith("device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got 'gpu'") and "Traceback" not in "".join(err)
+
+
+def test_evaluate_on_cuda_without_it_is_one_clear_line(tmp_path, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    from prismonet.cli import main
+
+    assert main(["evaluate", "clevr3_fc", str(tmp_path / "nothing"), "--device", "cuda"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no CUDA device" in err[0]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (run on the lent GPU machine)")
+def test_evaluate_on_cuda_gives_the_cpus_measures(scenes):
+    """``prismonet evaluate --device cuda``: the search and colour fit on the GPU, the measures on the CPU. Detections
+    must agree with the CPU's (a float's last bits may move a boundary pixel, not a match)."""
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.evaluation.evaluate import evaluate_model
+    from prismonet.model.inference import InferenceConfig
+    from prismonet.model.io import load_model, training_loss_config
+
+    ds = SceneDataset(scenes, "test")
+    cfg = InferenceConfig.of(search=1, fit_color=5)
+    res = {}
+    for device in ("cpu", "cuda"):
+        model, info = load_model("clevr3_fc")
+        res[device] = evaluate_model(model, ds, batch_size=4, limit=8, progress=False, inference=cfg,
+                                     loss_cfg=training_loss_config(info), device=device)
+    assert res["cuda"]["device"] == "cuda" and res["cpu"]["device"] == "cpu"
+    for k in ("AP0.5", "AR0.5", "count_exact"):
+        assert abs(res["cpu"][k] - res["cuda"][k]) <= 0.05, k
+    assert abs(res["cpu"]["PSNR"] - res["cuda"]["PSNR"]) < 0.5

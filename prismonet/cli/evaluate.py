@@ -41,8 +41,10 @@ def cmd_evaluate(args) -> int:
     from prismonet.evaluation.evaluate import check_compatible, evaluate_model, format_counts, format_steps, format_table
     from prismonet.evaluation.metrics import MISS_KINDS
     from prismonet.model.io import load_model, training_loss_config
+    from prismonet.model.trainer import training_device
 
     cfg = inference_config(args)  # validates every step's settings before any work
+    device = training_device(args.device)
     model, info = load_model(args.checkpoint, num_slots=args.objects)
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(model, info, ds, any_camera=args.any_camera)
@@ -51,13 +53,15 @@ def cmd_evaluate(args) -> int:
 
         ds = GrayScenes(ds)
     results = evaluate_model(model, ds, batch_size=args.batch, num_slots=args.objects, limit=args.limit, progress=not args.quiet,
-                             inference=cfg, loss_cfg=training_loss_config(info), supersample=args.supersample)
+                             inference=cfg, loss_cfg=training_loss_config(info), supersample=args.supersample,
+                             device=device)
     trained = info.get("model", {}).get("num_slots", "?")
     aa_ms = 1000 * results["supersample_seconds_per_scene"]
     aa_note = f"image measures from {args.supersample}x{args.supersample} rays per pixel (+{aa_ms:.1f} ms per scene); " if args.supersample > 1 else ""
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
-          f"{'grey input; ' if args.gray else ''}{aa_note}{cfg.describe()}{refined_note(model.cfg.refine_passes)}; {1000 * results['seconds_per_scene']:.1f} ms per scene)")
+          f"{'grey input; ' if args.gray else ''}{aa_note}{cfg.describe()}{refined_note(model.cfg.refine_passes)}; {1000 * results['seconds_per_scene']:.1f} ms per scene"
+          f"{'' if device.type == 'cpu' else f' on {device}'})")
     print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")
@@ -134,6 +138,8 @@ def _add_evaluate(sub) -> None:
                     help="image measures (RMSE, PSNR, SSIM) on the decomposition rendered with S x S rays per pixel, "
                          "averaged (anti-aliased; beyond the paper, whose renderer casts one; default 1)")
     ev.add_argument("--json", help="also write the results here")
+    ev.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA if there is one): where the model "
+                                                    "and its test-time steps run; the measures are the same either way")
     ev.add_argument("--quiet", action="store_true")
     add_inference_args(ev)
     ev.set_defaults(func=cmd_evaluate, outputs=[("json", "file")])

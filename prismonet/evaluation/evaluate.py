@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -148,8 +149,14 @@ def clevr_code_categories(prior) -> torch.Tensor | None:
 
 
 @torch.no_grad()
+def _on_cpu(params):
+    """A copy of ``SceneParams`` with every tensor field on the CPU (detached): the measures read them one by one."""
+    return dataclasses.replace(params, **{f.name: v.detach().cpu() for f in dataclasses.fields(params)
+                                          if isinstance(v := getattr(params, f.name), torch.Tensor)})
+
+
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
-                   inference=None, loss_cfg=None, supersample: int = 1) -> dict:
+                   inference=None, loss_cfg=None, supersample: int = 1, device: torch.device | str = "cpu") -> dict:
     """Run the model over a dataset split and compute the paper's measures.
 
     ``inference``: the test-time steps after the encoder (an ``InferenceConfig``; default: none, the
@@ -161,6 +168,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
     steps that were not kept count as not visible), with each step's mean position error and median
     predicted / true scale over its matched objects.
+    ``device``: where the model and its test-time steps run (the measures are computed on the CPU either way).
     """
     import time
 
@@ -171,12 +179,15 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     from prismonet.render.supersample import supersampled_image
 
     cfg = inference or InferenceConfig()
+    device = torch.device(device)
+    if supersample > 1 and device.type != "cpu":
+        raise ValueError("supersample renders on the CPU: evaluate with device cpu")
     n = len(ds) if limit is None else min(limit, len(ds))
     N = num_slots or model.cfg.num_slots
     step_inst, pred_inst, gt_inst, pred_img, gt_img, pred_d, gt_d, empty_d = [], [], [], [], [], [], [], []
     pos_err, rot_err, rot_sym, rot_shape, pair_step, scale_ratio, height_err, raised = [], [], [], [], [], [], [], []
     true_cat, drawn_cat = [], []  # Clevr data and a Clevr prior: each matched object's category, and its slot's nearest code's
-    model.eval()
+    model.to(device).eval()
     seconds, decoded, aa_seconds = 0.0, 0.0, 0.0
     specs, clevr_ids = dataset_shapes(ds)
     pseudo = None if clevr_ids else setting_symmetry(ds)
@@ -186,12 +197,14 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     for s in tqdm(range(0, n, batch_size), desc="evaluate", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, n))))
         t0 = time.perf_counter()
-        out = infer(model, b, cfg, loss_cfg, N)
+        out = infer(model, b.to(device), cfg, loss_cfg, N)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
         seconds += time.perf_counter() - t0
-        pi = out.composite.instance.numpy()
+        pi = out.composite.instance.cpu().numpy()
         gi = b.instance.numpy()
         pred_inst.append(pi)
-        steps_1 = np.concatenate([np.zeros((len(b), 1), np.int64), out.encoder_steps().numpy() + 1], 1)  # id -> 1-based step
+        steps_1 = np.concatenate([np.zeros((len(b), 1), np.int64), out.encoder_steps().cpu().numpy() + 1], 1)  # id -> 1-based step
         step_inst.append(np.take_along_axis(steps_1, pi.reshape(len(b), -1), 1).reshape(pi.shape))
         gt_inst.append(gi)
         if supersample > 1:
@@ -202,13 +215,13 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
                                                model.render_settings()).numpy())
             aa_seconds += time.perf_counter() - t0
         else:
-            pred_img.append(out.composite.image.numpy())
+            pred_img.append(out.composite.image.cpu().numpy())
         gt_img.append(b.rgb.numpy())
-        pred_d.append(out.composite.depth[:, 0].numpy())
+        pred_d.append(out.composite.depth[:, 0].cpu().numpy())
         gt_d.append(b.depth[:, 0].numpy())
         H, W = b.depth.shape[-2:]
         empty_d.append(plane_depth(b.K, b.T_world_cam, H, W, b.ground_z, model.cfg.far_depth)[:, 0].numpy())
-        p = out.latents.params
+        p = _on_cpu(out.latents.params)
         decoded += float(p.active.sum()) if p.active is not None else float(p.scale.numel())
         yaw = torch.atan2(p.cos_sin[..., 1], p.cos_sin[..., 0])
         near = None if codes is None else torch.cdist(p.z_sh.detach().cpu().to(codes.dtype), codes[None]).argmin(-1)  # (B, N)
@@ -265,6 +278,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     results["search_rounds"] = cfg.search.rounds
     results["color_fit_steps"] = cfg.color_fit.steps
     results["seconds_per_scene"] = seconds / max(n, 1)
+    results["device"] = str(device)
     results["supersample_seconds_per_scene"] = aa_seconds / max(n, 1)  # the anti-aliased image's render, on top
     results["slots_decoded"] = decoded / max(n, 1)
     has_depth = any(bool((g > 0).any()) for g in gt_d)  # photos have none: their depth measures are NaN, and say so
