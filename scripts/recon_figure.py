@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
     fx = b.K[:, 0, 0].numpy()
     rows = []
     for r, i in enumerate(idx):
-        tiles = [labelled_panel(chw_to_u8(b.rgb[r].numpy()), f"input (val {i})", PANEL),
+        tiles = [labelled_panel(chw_to_u8(b.rgb[r].numpy()), f"input ({args.split} {i})", PANEL),
                  labelled_panel(shaded_depth(b.depth[r].numpy(), fx[r]), "input depth", PANEL)]
         for name, (image, depth) in zip(names, outs):
             tiles += [labelled_panel(chw_to_u8(image[r]), name, PANEL),

@@ -148,13 +148,13 @@ def clevr_code_categories(prior) -> torch.Tensor | None:
     return torch.tensor(ids)
 
 
-@torch.no_grad()
 def _on_cpu(params):
     """A copy of ``SceneParams`` with every tensor field on the CPU (detached): the measures read them one by one."""
     return dataclasses.replace(params, **{f.name: v.detach().cpu() for f in dataclasses.fields(params)
                                           if isinstance(v := getattr(params, f.name), torch.Tensor)})
 
 
+@torch.no_grad()
 def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None, limit: int | None = None, progress: bool = True,
                    inference=None, loss_cfg=None, supersample: int = 1, device: torch.device | str = "cpu") -> dict:
     """Run the model over a dataset split and compute the paper's measures.
