@@ -60,8 +60,8 @@ def cmd_evaluate(args) -> int:
     aa_note = f"image measures from {args.supersample}x{args.supersample} rays per pixel (+{aa_ms:.1f} ms per scene); " if args.supersample > 1 else ""
     print(format_table([(f"{trained}/{results['num_slots']}", results)]))
     print(f"({results['scenes']} scenes of {args.data} [{args.split}], {results['matched_objects']} matched objects; "
-          f"{'grey input; ' if args.gray else ''}{aa_note}{cfg.describe()}{refined_note(model.cfg.refine_passes)}; {1000 * results['seconds_per_scene']:.1f} ms per scene"
-          f"{'' if device.type == 'cpu' else f' on {device}'})")
+          f"{'grey input; ' if args.gray else ''}{aa_note}{cfg.describe()}{refined_note(model.cfg.refine_passes)}; "
+          f"{1000 * results['seconds_per_scene']:.1f} ms per scene{'' if device.type == 'cpu' else f' on {device}'})")
     print(f"visible-object count right in {results['count_exact']:.3f} of scenes (mean |error| {results['count_abs_err']:.2f}); "
           f"{results['slots_decoded']:.2f} slots kept per scene; height error {results['height_err']:.3f}"
           + (f" ({results['height_err_raised']:.3f} over {results['matched_raised']} objects resting on others)" if results["matched_raised"] else "")

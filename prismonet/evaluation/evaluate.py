@@ -204,7 +204,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         pi = out.composite.instance.cpu().numpy()
         gi = b.instance.numpy()
         pred_inst.append(pi)
-        steps_1 = np.concatenate([np.zeros((len(b), 1), np.int64), out.encoder_steps().cpu().numpy() + 1], 1)  # id -> 1-based step
+        enc_steps = out.encoder_steps().cpu().numpy()
+        steps_1 = np.concatenate([np.zeros((len(b), 1), np.int64), enc_steps + 1], 1)  # id -> 1-based step
         step_inst.append(np.take_along_axis(steps_1, pi.reshape(len(b), -1), 1).reshape(pi.shape))
         gt_inst.append(gi)
         if supersample > 1:
