@@ -168,7 +168,8 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
     ``per_step`` breaks detections down by encoder step (``recurrent_step_metrics``; with extra slots,
     steps that were not kept count as not visible), with each step's mean position error and median
     predicted / true scale over its matched objects.
-    ``device``: where the model and its test-time steps run (the measures are computed on the CPU either way).
+    ``device``: where the model and its test-time steps run (the model is moved there, ``Module.to``; the measures are
+    computed on the CPU either way).
     """
     import time
 
