@@ -240,3 +240,11 @@ def test_evaluate_on_cuda_gives_the_cpus_measures(scenes):
     for k in ("AP0.5", "AR0.5", "count_exact"):
         assert abs(res["cpu"][k] - res["cuda"][k]) <= 0.05, k
     assert abs(res["cpu"]["PSNR"] - res["cuda"]["PSNR"]) < 0.5
+
+
+def test_evaluate_with_a_device_name_pytorch_does_not_know_is_one_clear_line(tmp_path, capsys):
+    from prismonet.cli import main
+
+    assert main(["evaluate", "clevr3_fc", str(tmp_path / "nothing"), "--device", "gpu"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got 'gpu'")

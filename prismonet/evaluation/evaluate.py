@@ -226,7 +226,7 @@ def evaluate_model(model, ds, batch_size: int = 16, num_slots: int | None = None
         p = _on_cpu(out.latents.params)
         decoded += float(p.active.sum()) if p.active is not None else float(p.scale.numel())
         yaw = torch.atan2(p.cos_sin[..., 1], p.cos_sin[..., 0])
-        near = None if codes is None else torch.cdist(p.z_sh.detach().cpu().to(codes.dtype), codes[None]).argmin(-1)  # (B, N)
+        near = None if codes is None else torch.cdist(p.z_sh.to(codes.dtype), codes[None]).argmin(-1)  # (B, N)
         for j in range(len(b)):
             for pk, gk in scene_detection(pi[j], gi[j], 0.5)["pairs"]:
                 pos_err.append(float((p.position[j, pk - 1] - b.obj_position[j, gk - 1]).norm()))
