@@ -91,3 +91,18 @@ def test_export_edit_and_views_take_a_named_shapenet_model(tmp_path):
                  "--out", str(swapped)]) == 0
     a, b = scene["objects"][:2], json.loads(swapped.read_text())["objects"][:2]
     assert b[0]["z_sh"] == a[1]["z_sh"] and b[1]["z_sh"] == a[0]["z_sh"] and b[0]["position"] == a[0]["position"]
+
+
+def test_rotation_up_to_symmetry_is_nan_without_the_import(tmp_path):
+    """Scenes made from an import that is not here (the meshes are an opt-in step): the error up to the setting's
+    pseudo-symmetry cannot be told, so it reads NaN, not the plain error under its name (it once did, silently)."""
+    import math
+
+    from prismonet.evaluation.evaluate import setting_symmetry
+
+    model, info = load_model("cars")
+    ds = SceneDataset(asset_path("samples/cars"), split="test")
+    ds.meta = {**ds.meta, "config": {**ds.meta["config"], "shapes": str(tmp_path / "not_imported")}}
+    assert math.isnan(setting_symmetry(ds))
+    r = evaluate_model(model, ds, batch_size=8, limit=8, progress=False)
+    assert r["matched_objects"] > 0 and math.isfinite(r["rot_err"]) and math.isnan(r["rot_err_sym"])

@@ -110,15 +110,21 @@ def dataset_shapes(ds):
 
 def setting_symmetry(ds) -> float | None:
     """The pseudo-symmetry period of an imported setting's scenes (``SETTING_SYMMETRY``, by the setting
-    its ``models.json`` names), or ``None``."""
+    its ``models.json`` names); ``None`` for Clevr shapes and a setting without one (the error up to symmetry is
+    then the plain error); NaN when the import the scenes were made from is not here, so that the error up to
+    symmetry reads NaN rather than the plain error under its name."""
     import json
     from pathlib import Path
 
-    folder = Path(_generator_config(ds).get("shapes", "clevr"))
-    try:
-        return SETTING_SYMMETRY.get(json.loads((folder / "models.json").read_text()).get("setting"))
-    except (OSError, ValueError):
+    from prismonet.shapes.library import CLEVR
+
+    name = _generator_config(ds).get("shapes", CLEVR)
+    if name == CLEVR:
         return None
+    try:
+        return SETTING_SYMMETRY.get(json.loads((Path(name) / "models.json").read_text()).get("setting"))
+    except (OSError, ValueError):
+        return math.nan
 
 
 def shape_periods(ds, specs, clevr_ids: bool) -> list[float] | None:
