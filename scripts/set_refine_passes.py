@@ -12,7 +12,8 @@ rule reads as unexplained in a greyscale image (``none``: grey images read as co
 
     python3 scripts/set_refine_passes.py tabletop_keep 2 runs/tabletop_keep_noshade --anchor-shade none   # session 48's
 
-``--keep-logit X`` sets ``refiner_keep_logit`` (the bar a keep logit must beat in every pass; default 0) and
+``--keep-passes N`` sets ``refiner_keep_passes`` (the keep output drops slots in the first N passes only; ``none``: every
+pass), ``--keep-logit X`` sets ``refiner_keep_logit`` (the bar a keep logit must beat in every pass; default 0) and
 ``--rescue PX`` sets ``refiner_rescue_px`` (a slot the keep output dropped is taken back where it would show at least PX
 pixels the kept slots leave unexplained; ``prismonet.model.rescue``), and ``--snap-shapes on`` sets ``refiner_snap_shape`` (each pass ends with every shape latent on the prior's nearest
 training code):
@@ -48,6 +49,9 @@ def main() -> None:
                          "('none': off)")
     ap.add_argument("--keep-logit", type=float, default=None, metavar="X",
                     help="also set refiner_keep_logit: in every pass a slot is dropped where its keep logit is <= X (default 0)")
+    ap.add_argument("--keep-passes", default=None, metavar="N",
+                    help="also set refiner_keep_passes: the keep output drops slots in the first N passes only "
+                         "('none': every pass)")
     ap.add_argument("--rescue", type=int, default=None, metavar="PX",
                     help="also set refiner_rescue_px: after the passes a dropped slot is taken back where it would show "
                          "at least PX pixels the kept slots leave unexplained, half of all it shows (0: off)")
@@ -73,6 +77,11 @@ def main() -> None:
         if not model.cfg.refiner_keep:
             raise SystemExit(f"{args.model}: --keep-logit needs a refiner with a keep output")
         fields["refiner_keep_logit"] = args.keep_logit
+    if args.keep_passes is not None:
+        n = number_or_none("--keep-passes", args.keep_passes)
+        if n is not None and not n.is_integer():
+            raise SystemExit(f"--keep-passes: expected a whole number or 'none', got {args.keep_passes!r}")
+        fields["refiner_keep_passes"] = None if n is None else int(n)
     if args.rescue is not None:
         if not model.cfg.refiner_keep:
             raise SystemExit(f"{args.model}: --rescue needs a refiner with a keep output")

@@ -778,6 +778,43 @@ def test_reanchor_keep_bar_keeps_more_new_slots_only():
         ModelConfig(reanchor_keep_logit=float("-inf"))
 
 
+def test_keep_passes_drop_in_the_first_passes_only():
+    """``refiner_keep_passes``: with two passes and the keep output in the first only, the slots kept are exactly those
+    one pass keeps, and the second pass moves them as it does with both passes dropping (the shipped 1-8 model's second
+    pass drops a slot on these scenes, so the field matters here); re-anchored slots' passes follow the same rule; bad
+    values refused."""
+    from dataclasses import replace
+
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+
+    shipped, _ = load_model("clevr1to8_keep")
+    b = SceneDataset(samples_for("clevr1to8_keep"), split="test").batch(list(range(16)))
+    got, bars = {}, {}
+    for passes, keep_passes, reanchor in ((1, None, 0), (2, None, 0), (2, 1, 0), (3, 2, 2)):
+        cfg = replace(shipped.cfg, refine_passes=passes, refiner_keep_passes=keep_passes, reanchor_steps=reanchor)
+        m = PriSMONet(cfg, prior=shipped.prior)
+        m.load_state_dict(shipped.state_dict())
+        seen = bars.setdefault((passes, keep_passes), [])
+        plain = m._refine_pass
+        m._refine_pass = lambda *a, **kw: (seen.append((kw.get("only") is not None, kw["keep_above"])), plain(*a, **kw))[1]
+        with torch.no_grad():
+            got[passes, keep_passes] = m.eval()(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params
+    one, both, first = got[1, None], got[2, None], got[2, 1]
+    assert torch.equal(first.active, one.active) and int(both.active.sum()) < int(first.active.sum())
+    assert torch.equal(first.position, both.position) and torch.equal(first.scale, both.scale)
+    bar, re_bar = shipped.cfg.refiner_keep_logit, shipped.cfg.reanchor_keep_logit
+    assert bars[2, 1] == [(False, bar), (False, None)]
+    assert bars[3, 2] == [(False, bar), (False, bar), (False, None), (True, re_bar), (True, re_bar), (True, None)]
+    for fields in ({"refiner_keep_passes": 0, "refine_passes": 2, "refiner_keep": True},
+                   {"refiner_keep_passes": 1, "refine_passes": 2}):
+        with pytest.raises(ValueError, match="refiner_keep_passes must be >= 1"):
+            ModelConfig(**fields)
+
+
 def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
     """``scripts/set_refine_passes.py --reanchor`` on a model without anchors: one line, exit status non-zero, nothing
     written."""
@@ -797,7 +834,10 @@ def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
                               ("clevr3_glimpse", ["--rescue", "10"], "--rescue needs a refiner with a keep output"),
                               ("cars_keep", ["--rescue", "-1"], "refiner_rescue_px must be >= 0"),
                               ("clevr3_glimpse", ["--anchor-color", "0.2"], "--anchor-color needs an anchored model"),
-                              ("tabletop_keep", ["--anchor-color", "0"], "anchor_color_tol > 0")):
+                              ("tabletop_keep", ["--anchor-color", "0"], "anchor_color_tol > 0"),
+                              ("cars_keep", ["--keep-passes", "0"], "refiner_keep_passes must be >= 1"),
+                              ("cars_keep", ["--keep-passes", "1.5"], "--keep-passes: expected a whole number"),
+                              ("clevr3_glimpse", ["--keep-passes", "1"], "needs refiner_keep")):
         r = subprocess.run([sys.executable, str(script), name, "2", str(tmp_path / "out"), *extra], capture_output=True, text=True)
         assert r.returncode != 0 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "out").exists()

@@ -92,6 +92,11 @@ class ModelConfig:
     refiner_keep_logit: float = 0.0
     """With ``refiner_keep`` (inference; beyond the paper): a slot is dropped where its keep logit is at or below this, in
     every refinement pass (0: the logit's own decision, as fitted). A higher bar trades recall for precision."""
+    refiner_keep_passes: int | None = None
+    """With ``refiner_keep`` (inference; beyond the paper): the keep output drops slots in the first this many
+    refinement passes only; the later passes move slots and never drop them (re-anchored slots' passes likewise).
+    A pass added to a model for its geometry need not also add its drops (EVALUATION.md, "Session 96").
+    ``None``: every pass may drop, as fitted."""
     refiner_rescue_px: int = 0
     """With ``refiner_keep`` (inference; beyond the paper): after the refinement passes, a slot the keep output dropped
     is taken back where it would show at least this many pixels of the input that the kept slots leave unexplained in
@@ -168,6 +173,8 @@ class ModelConfig:
             raise ValueError(f"reanchor_keep_logit must be a finite number or None (never drop), got {self.reanchor_keep_logit}")
         if self.refiner_rescue_px < 0 or (self.refiner_rescue_px and not (self.refine_passes and self.refiner_keep)):
             raise ValueError(f"refiner_rescue_px must be >= 0 and needs refine_passes >= 1 and refiner_keep, got {self.refiner_rescue_px}")
+        if self.refiner_keep_passes is not None and (self.refiner_keep_passes < 1 or not self.refiner_keep):
+            raise ValueError(f"refiner_keep_passes must be >= 1 (or None) and needs refiner_keep, got {self.refiner_keep_passes}")
         if not math.isfinite(self.refiner_keep_logit):
             raise ValueError(f"refiner_keep_logit must be a finite number, got {self.refiner_keep_logit}")
         if (self.refiner_snap_shape or self.refiner_keep_logit != 0.0) and not self.refine_passes:

@@ -323,9 +323,15 @@ class PriSMONet(nn.Module):
         """The model's ``cfg.refine_passes`` refinement passes (``prismonet.model.refiner``; none: ``out`` as
         it is): each corrects every active slot of ``out`` from its render against ``image``, then renders all
         again."""
-        for _ in range(self.cfg.refine_passes):
-            out = self._refine_pass(out, image, K, T_world_cam, keep_above=self.cfg.refiner_keep_logit)
+        for i in range(self.cfg.refine_passes):
+            out = self._refine_pass(out, image, K, T_world_cam, keep_above=self._keep_bar(i, self.cfg.refiner_keep_logit))
         return out
+
+    def _keep_bar(self, pass_index: int, bar: float | None) -> float | None:
+        """The keep bar of refinement pass ``pass_index`` (from 0): ``bar``, or ``None`` (no slot dropped) after the
+        first ``cfg.refiner_keep_passes`` passes."""
+        n = self.cfg.refiner_keep_passes
+        return bar if n is None or pass_index < n else None
 
     def _refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                      only: torch.Tensor | None = None, keep_above: float | None = 0.0) -> ModelOutput:
@@ -434,9 +440,9 @@ class PriSMONet(nn.Module):
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         out = ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped)
-        for _ in range(self.cfg.refine_passes):
+        for i in range(self.cfg.refine_passes):
             out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
-                                    keep_above=self.cfg.reanchor_keep_logit)
+                                    keep_above=self._keep_bar(i, self.cfg.reanchor_keep_logit))
         return out
 
     def recolor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
