@@ -815,6 +815,83 @@ def test_keep_passes_drop_in_the_first_passes_only():
             ModelConfig(**fields)
 
 
+def test_reanchor_cache_and_term_on_the_re_anchored_slots_only():
+    """``refiner_fit.reanchor_cache``: the slots it marks added are those the re-anchoring put into slots the refined
+    decoding left empty, and the others keep the refined latents exactly; ``reanchored_term``: with targets equal to the
+    corrected re-anchored slots, the term is the keep logits' cross-entropy alone (by hand), targets of the other slots
+    do not move it, and a shifted target of a shown re-anchored slot adds its L1 distance."""
+    from dataclasses import replace
+
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import MIN_VISIBLE, VISIBLE, DistillWeights
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+    from prismonet.model.refiner import split_keep
+    from prismonet.model.refiner_fit import KEEP_WEIGHT, cached_refiner_inputs, reanchor_cache, reanchored_term
+    from prismonet.render import SceneParams
+
+    shipped, _ = load_model("clevr1to8_keep")
+    m = PriSMONet(replace(shipped.cfg, reanchor_keep_logit=None), prior=shipped.prior)
+    m.load_state_dict(shipped.state_dict())
+    ds = SceneDataset(samples_for("clevr1to8_keep"), split="test")
+    rc = reanchor_cache(m.eval(), ds, 16, batch_size=16, progress=False)
+    b = ds.batch(list(range(16)))
+    with torch.no_grad():
+        refined = m.refine_slots(m(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam, b.ground_z)
+    before = refined.latents.params
+    added = rc["added"]
+    assert bool(added.any()) and not bool((added & before.active).any())
+    assert torch.equal(rc["position"][~added], before.position[~added])
+    fields = ("z_sh", "z_tex", "position", "cos_sin", "scale")
+    params = SceneParams(*(rc[k] for k in fields))
+    with torch.no_grad():
+        delta, keep = split_keep(m.refiner(*cached_refiner_inputs(m, rc, ds, torch.arange(16), params)), True)
+    from prismonet.model.refiner import apply_correction
+
+    new = apply_correction(params, delta, m.pos_scale, m.cfg.scale_range)
+    visible = torch.where(added, torch.tensor(40.0), torch.tensor(0.0))
+    visible[added.nonzero()[0, 0], added.nonzero()[0, 1]] = MIN_VISIBLE - 1  # one re-anchored slot hidden: a drop target
+
+    class Targets:  # DistillTargets' lookup, in memory
+        def __init__(self, t):
+            self.t = t
+
+        def lookup(self, idx):
+            return {k: v[idx] for k, v in self.t.items()}, torch.ones(len(idx))
+
+    t = {"scale": new.scale.clone(), "position": new.position.clone(), "cos_sin": new.cos_sin.clone(), "z_tex": new.z_tex.clone(),
+         "bg_color": torch.zeros(16, 3), VISIBLE: visible}
+    w = DistillWeights(background=0.0, texture=0.1)
+    idx = torch.arange(16)
+    with torch.no_grad():
+        got = float(reanchored_term(m, rc, ds, Targets(t), idx, w))
+        shown = (visible >= MIN_VISIBLE).float()
+        bce = torch.nn.functional.binary_cross_entropy_with_logits(keep.reshape(16, -1), shown, reduction="none")
+        rows = added.any(1)
+        want = float((KEEP_WEIGHT * (bce * added).sum(1)[rows] / added.sum(1)[rows]).mean())
+        assert got == pytest.approx(want, rel=1e-5, abs=1e-6)
+        t_other = {**t, "position": torch.where(added[..., None], t["position"], t["position"] + 5.0)}
+        assert float(reanchored_term(m, rc, ds, Targets(t_other), idx, w)) == pytest.approx(got, rel=1e-6)
+        s_, k_ = [int(v) for v in (added & (visible >= MIN_VISIBLE)).nonzero()[0]]
+        t_moved = {**t, "position": t["position"].clone()}
+        t_moved["position"][s_, k_, 0] += 0.3
+        shown_here = float((added[s_] & (visible[s_] >= MIN_VISIBLE)).sum())
+        extra = 0.3 / shown_here / int(rows.sum())
+        assert float(reanchored_term(m, rc, ds, Targets(t_moved), idx, w)) == pytest.approx(got + extra, rel=1e-4)
+        # beside it, the encoder's rows: a slot the encoder left empty is not a target of the whole model's
+        from prismonet.model.refiner_fit import _loss, encoder_cache
+
+        cache = encoder_cache(m, ds, 16, batch_size=16, progress=False)
+        every = {**t, VISIBLE: torch.full_like(visible, 40.0)}
+        masked = {**t, VISIBLE: torch.where(cache["active"], every[VISIBLE], torch.zeros_like(visible))}
+        none_added = {**rc, "added": torch.zeros_like(added)}
+        assert not bool(cache["active"].all())
+        a = float(_loss(m, cache, ds, Targets(every), idx, w, rcache=none_added, reanchored=1.0))
+        assert a == pytest.approx(float(_loss(m, cache, ds, Targets(masked), idx, w)), rel=1e-6)
+        assert a != pytest.approx(float(_loss(m, cache, ds, Targets(every), idx, w)), rel=1e-3)
+
+
 def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
     """``scripts/set_refine_passes.py --reanchor`` on a model without anchors: one line, exit status non-zero, nothing
     written."""
@@ -1036,4 +1113,21 @@ def test_refiner_command_refuses_shape_codes_without_shape_in_one_line(tmp_path,
                  "--shape-codes"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("prismonet: error:") and "refiner --shape" in err[-1] and "Traceback" not in "\n".join(err)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("model, extra, says", [
+    ("clevr1to8_keep", [], "already has a refiner; start from its encoder's model, or --fine-tune it"),
+    ("clevr1to8_keep", ["--fine-tune", "--keep"], "--fine-tune trains the model's own refiner"),
+    ("clevr1to8_keep", ["--fine-tune", "--reanchored", "-1"], "reanchored must be >= 0"),
+])
+def test_refiner_command_fine_tune_refusals_in_one_line(model, extra, says, tmp_path, capsys):
+    """``prismonet refiner``: a model with a refiner needs ``--fine-tune``, which keeps its refiner settings; a negative
+    ``--reanchored`` is refused; one line each, exit status 2, no run folder left."""
+    from prismonet.cli import main
+
+    out = tmp_path / "run"
+    assert main(["refiner", model, str(tmp_path / "data"), "--targets", str(tmp_path / "t"), "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("prismonet: error:") and says in err[-1] and "Traceback" not in "\n".join(err)
     assert not out.exists()

@@ -69,12 +69,19 @@ def cmd_refiner(args) -> int:
                          f"{args.gray_share} cannot be used with them")
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
                            texture=args.texture, color=args.color, true_poses=args.true_poses, fill_hidden=args.fill_hidden,
-                           recolor=args.recolor, gray_share=1.0 if gray else args.gray_share, gray_targets=gray)  # validate first
+                           recolor=args.recolor, gray_share=1.0 if gray else args.gray_share, gray_targets=gray,
+                           reanchored=args.reanchored)  # validate first
     base, info = load_model(args.checkpoint)
-    if base.cfg.refine_passes:
-        raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model")
-    model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords, refiner_shape=args.shape,
-                         refiner_shape_codes=args.shape_codes, refiner_keep=args.keep)  # checks the refiner settings
+    if args.fine_tune:  # the model's own refiner, trained on
+        if not base.cfg.refine_passes or args.glimpse or args.coords or args.shape or args.shape_codes or args.keep:
+            raise ValueError(f"{args.checkpoint}: --fine-tune trains the model's own refiner (it has {base.cfg.refine_passes} "
+                             "passes); its refiner settings (--glimpse, --coords, --shape, --shape-codes, --keep) stay as they are")
+        model = base
+    elif base.cfg.refine_passes:
+        raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model, or --fine-tune it")
+    else:
+        model = with_refiner(base, refiner_glimpse=args.glimpse, refiner_coords=args.coords, refiner_shape=args.shape,
+                             refiner_shape_codes=args.shape_codes, refiner_keep=args.keep)  # checks the refiner settings
     ds = SceneDataset(args.data, split=args.split)
     check_compatible(base, info, ds)
     from prismonet.model.distill_fit import weights_digest
@@ -200,6 +207,12 @@ def _add_refiner_parser(sub) -> None:
                    help="the refiner sees this share of the scenes grey (drawn once per scene from --seed), as a greyscale "
                         "photo shows them; the targets stay the search's fits to the colour scenes; needs --texture 0 (targets made by "
                         "`distill --gray` set it to 1 and allow a texture weight)")
+    r.add_argument("--fine-tune", action="store_true",
+                   help="train the refiner CHECKPOINT already has (its settings and passes kept) instead of a fresh one")
+    r.add_argument("--reanchored", type=float, default=0.0, metavar="W",
+                   help="with --fine-tune on an anchored model with re-anchoring: also fit the refiner on the slots the "
+                        "re-anchoring adds, with weight W, against targets `distill` made from CHECKPOINT itself (keep bars "
+                        "off, so that no slot is dropped); 0: off")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

@@ -398,6 +398,20 @@ class PriSMONet(nn.Module):
         """``cfg.reanchor_steps`` more anchored encoder steps after refinement (see ``ModelConfig.reanchor_steps``):
         each step's slot goes into its scene's first empty slot; a scene with no empty slot, or nothing left
         unexplained, takes no step. Then the refiner's passes on the new slots alone."""
+        out, added = self.reanchor_slots(out, image, K, T_world_cam, ground_z)
+        if not added.any():
+            return out
+        for i in range(self.cfg.refine_passes):
+            out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
+                                    keep_above=self._keep_bar(i, self.cfg.reanchor_keep_logit))
+        return out
+
+    @torch.no_grad()
+    def reanchor_slots(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                       ground_z: torch.Tensor) -> tuple[ModelOutput, torch.Tensor]:
+        """``reanchor``'s anchored steps without the refiner's passes: ``out`` with the new slots in place and rendered
+        (``out`` itself when no scene takes a step), and ``(B, N)`` bool, the slots added. What the refiner's passes on
+        the new slots see (``refiner_fit.reanchor_cache``)."""
         params = replace(out.latents.params)
         B, N = params.scale.shape
         H, W = image.shape[-2:]
@@ -434,16 +448,12 @@ class PriSMONet(nn.Module):
             active[b, k] = True
             added[b, k] = True
         if not added.any():
-            return out
+            return out, added
         params.active = active
         obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, self.render_settings())
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
-        out = ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                          obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped)
-        for i in range(self.cfg.refine_passes):
-            out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
-                                    keep_above=self._keep_bar(i, self.cfg.reanchor_keep_logit))
-        return out
+        return ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
+                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped), added
 
     def recolor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
         """``out`` with every active slot's texture latent moved by the colour step (``cfg.color_step``,

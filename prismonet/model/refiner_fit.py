@@ -25,8 +25,8 @@ from pathlib import Path
 
 import torch
 
-from prismonet.model.distill import (SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss, keep_loss,
-                                     shown_mean)
+from prismonet.model.distill import (SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss,
+                                     distill_terms, keep_loss, seen_slots, shown_mean)
 from prismonet.model.refiner import apply_correction, shape_labels, split_keep
 
 KEEP_WEIGHT = 0.2
@@ -73,6 +73,13 @@ class RefinerFitConfig:
     scene from ``seed``), the encoder's cached decoding included, as a greyscale photo shows them; the targets stay the
     search's fits to the colour scenes. Their texture latents are colours a grey scene does not show, so ``texture``
     and ``color`` must be 0 (unless ``gray_targets``)."""
+    reanchored: float = 0.0
+    """> 0: the refiner is also fitted on the slots the model's re-anchoring adds (``reanchor_cache``: what its passes
+    on them see), with this weight, against targets made by the whole model (``prismonet distill`` from the same
+    model, so slot k of the targets is slot k of its output, re-anchored slots included, and none dropped: keep bars
+    off). The encoder's rows of the slots it left empty are then not targets. Needs an anchored model with
+    ``reanchor_steps`` and a refiner, whose current refiner makes the re-anchored slots (EVALUATION.md, "Session 96").
+    0: off (the fits before session 96)."""
     gray_targets: bool = False
     """The targets were fitted on the grey scenes themselves (``prismonet distill --gray``, ``DistillTargets.gray``): slot
     k's target is what the grey decoding's slot k found, and its texture latent a grey fit. Needs ``gray_share`` 1;
@@ -92,6 +99,9 @@ class RefinerFitConfig:
         if not 0 <= self.gray_share <= 1 or (self.gray_share > 0 and not self.gray_targets and (self.texture > 0 or self.color > 0)):
             raise ValueError("refiner fit: gray_share must be in [0, 1], and with it texture = 0 and color = 0 (a grey scene "
                              f"does not show the targets' colours), got {self.gray_share}, {self.texture}, {self.color}")
+        if self.reanchored < 0 or (self.reanchored > 0 and (self.true_poses or self.recolor or self.gray_share > 0)):
+            raise ValueError(f"refiner fit: reanchored must be >= 0, and cannot be used with true_poses, recolor or "
+                             f"gray_share, got {self.reanchored}")
         if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
             raise ValueError(f"refiner fit: weight_decay, texture and color must be >= 0, got {self.weight_decay}, {self.texture}, {self.color}")
 
@@ -126,7 +136,63 @@ def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = 
         rows["obj_mask"].append(out.obj_mask)
         for k in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
             rows[k].append(getattr(p, k))
+        if p.active is not None:
+            rows.setdefault("active", []).append(p.active)
     return {k: torch.cat(v) for k, v in rows.items()}
+
+
+@torch.no_grad()
+def reanchor_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
+    """What the refiner's passes on re-anchored slots see, for scenes ``0 .. count-1``: the model decodes each scene,
+    refines it (``refine_slots``) and re-anchors it (``reanchor_slots``), as at inference; the composite, instance ids,
+    slot silhouettes and latents of that moment (``encoder_cache``'s fields) and ``added (S, N)``, the slots the
+    re-anchoring put in. Needs an anchored model with ``reanchor_steps`` and a refiner."""
+    from tqdm import tqdm
+
+    if not (model.cfg.anchor and model.cfg.reanchor_steps and model.cfg.refine_passes):
+        raise DistillError("reanchor_cache needs an anchored model with reanchor_steps and a refiner")
+    model.eval()
+    rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("comp", "instance", "obj_mask", "z_sh", "z_tex", "position", "cos_sin",
+                                                           "scale", "added")}
+    for s in tqdm(range(0, count, batch_size), desc="re-anchored slots", unit="batch", disable=not progress):
+        b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
+        out = model.refine_slots(model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam,
+                                 b.ground_z)
+        out, added = model.reanchor_slots(out, b.rgb, b.K, b.T_world_cam, b.ground_z)
+        p = out.latents.params
+        rows["comp"].append(out.composite.image.half())
+        rows["instance"].append(out.composite.instance.to(torch.uint8))
+        rows["obj_mask"].append(out.obj_mask)
+        for k in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
+            rows[k].append(getattr(p, k))
+        rows["added"].append(added)
+    return {k: torch.cat(v) for k, v in rows.items()}
+
+
+def reanchored_term(model, rcache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
+    """``()``: the refiner's loss on the re-anchored slots of scenes ``idx`` (``reanchor_cache``'s ``rcache``): the
+    regression onto their targets over those the fit shows, plus ``KEEP_WEIGHT`` times the keep logits' binary
+    cross-entropy over all of them, each a mean over a scene's re-anchored slots, then over the scenes that have
+    targets and re-anchored slots (0 when none has)."""
+    from prismonet.render import SceneParams
+
+    idx = idx.to(rcache["scale"].device)
+    idx = idx[rcache["added"][idx].any(1)]
+    if not len(idx):
+        return rcache["scale"].new_zeros(())
+    params = SceneParams(*(rcache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
+    delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, rcache, ds, idx, params)), model.cfg.refiner_keep)
+    new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
+    t, have = targets.lookup(idx)
+    added = rcache["added"][idx].to(new.scale.dtype)
+    shown = seen_slots(t, added) * added
+    per_slot = sum(distill_terms(new, t, weights).values())
+    per_scene = (per_slot * shown).sum(1) / shown.sum(1).clamp_min(1.0)
+    if keep_logit is not None:
+        bce = torch.nn.functional.binary_cross_entropy_with_logits(keep_logit.reshape(added.shape), seen_slots(t, added),
+                                                                   reduction="none")
+        per_scene = per_scene + KEEP_WEIGHT * (bce * added).sum(1) / added.sum(1)
+    return (per_scene * have).sum() / have.sum().clamp_min(1.0)
 
 
 def cached_refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[torch.Tensor, torch.Tensor]:
@@ -169,7 +235,8 @@ def shape_choice_term(logits: torch.Tensor, own: torch.Tensor, targets: dict[str
     return shown_mean(ce, targets, mask)
 
 
-def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0) -> torch.Tensor:
+def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0,
+          rcache: dict[str, torch.Tensor] | None = None, reanchored: float = 0.0) -> torch.Tensor:
     from prismonet.render import SceneParams
 
     idx = idx.to(cache["scale"].device)  # the batch, the cache and the targets go where the model is
@@ -178,6 +245,8 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     codes = model.shape_codes()
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range, codes=codes)  # every slot moves: the regression sees all
     t, have = targets.lookup(idx)
+    if rcache is not None and "active" in cache:  # targets of the whole model: a slot the encoder left empty is not its
+        t = {**t, VISIBLE: torch.where(cache["active"][idx], t[VISIBLE], torch.zeros_like(t[VISIBLE]))}
     if codes is not None:  # the shape is a choice, fitted by its own term, not regressed
         weights = replace(weights, shape=0.0)
     loss = distill_loss(new, t["bg_color"], t, have, weights)
@@ -189,14 +258,17 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
         loss = loss + color * color_term(model.color_fn, new.z_tex, t["z_tex"], t, have, color_points())
     if keep_logit is not None:
         loss = loss + KEEP_WEIGHT * keep_loss(keep_logit.reshape(len(idx), -1), t, have)
+    if rcache is not None:
+        loss = loss + reanchored * reanchored_term(model, rcache, ds, targets, idx, weights)
     return loss
 
 
-def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128, color: float = 0.0) -> float:
+def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128, color: float = 0.0,
+                   rcache: dict[str, torch.Tensor] | None = None, reanchored: float = 0.0) -> float:
     model.refiner.eval()
     with torch.no_grad():
-        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights, color), len(idx[i:i + batch]))
-                 for i in range(0, len(idx), batch)]
+        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights, color, rcache, reanchored),
+                  len(idx[i:i + batch])) for i in range(0, len(idx), batch)]
     model.refiner.train()
     return float(sum(l * n for l, n in parts) / max(1, sum(n for _, n in parts)))
 
@@ -244,7 +316,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     # ``steps`` may change when a run resumes (to train longer); nothing else may
     # the options added later are recorded only when on, so runs made before them resume
     fit = {k: v for k, v in asdict(cfg).items()
-           if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share", "gray_targets") and not v)}
+           if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share", "gray_targets",
+                                          "reanchored") and not v)}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
@@ -269,6 +342,13 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     ckpt = out / "checkpoint.safetensors"
     model.to(device)
     weights = DistillWeights(background=0.0, texture=cfg.texture)
+    rcache = None
+    if cfg.reanchored:  # made by the refiner the fit starts from, before a resumed run loads its later weights
+        if model.cfg.refiner_shape_codes or VISIBLE not in targets.t:
+            raise DistillError("reanchored: needs targets that say which slots the fit shows, and a refiner without shape codes")
+        rcache = reanchor_cache(model, ds, count, progress=progress)
+        if "active" not in (cache or {"active": None}):
+            raise DistillError("reanchored: the encoder cache must hold the encoder's active slots (encoder_cache makes it)")
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = resume_part(ckpt, "refiner.", model.refiner, opt, record, DistillError)
     if 0 < cfg.steps <= step:  # a finished run resumed: no step left to take, so no cache to make (minutes of decoding)
@@ -282,15 +362,20 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
     log = out / "log.jsonl"
+    if rcache is not None:
+        rcache = {k: v.to(device) for k, v in rcache.items()}
+    held_out = lambda: _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color, rcache=rcache,  # noqa: E731
+                                      reanchored=cfg.reanchored)
     if step == 0:
         log.write_text("")
-        append_row(log, {"step": 0, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)})  # no correction
+        append_row(log, {"step": 0, "held_out": held_out()})  # the refiner as it starts (no correction when fresh)
 
     def loss_at(at: int) -> torch.Tensor:
-        return _loss(model, cache, ds, targets, batch_indices(cfg.seed, at, train_n, cfg.batch_size), weights, cfg.color)
+        return _loss(model, cache, ds, targets, batch_indices(cfg.seed, at, train_n, cfg.batch_size), weights, cfg.color,
+                     rcache, cfg.reanchored)
 
     def report(at: int, train: float) -> str:
-        row = {"step": at, "train": train, "held_out": _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color)}
+        row = {"step": at, "train": train, "held_out": held_out()}
         append_row(log, row)
         return f"held_out={row['held_out']:.4f}"
 
