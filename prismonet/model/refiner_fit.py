@@ -119,25 +119,33 @@ def with_refiner(model, passes: int = 1, **fields):
     return rebuilt(model, "refiner.", refine_passes=passes, **fields)
 
 
+LATENTS = ("z_sh", "z_tex", "position", "cos_sin", "scale")
+
+
+def _append_decoding(rows: dict[str, list[torch.Tensor]], out) -> None:
+    """Add a decoding ``out`` to a cache's ``rows``: composite colour (float16), instance ids, slot silhouettes, latents,
+    and the slots' activity where it has one."""
+    p = out.latents.params
+    rows.setdefault("comp", []).append(out.composite.image.half())
+    rows.setdefault("instance", []).append(out.composite.instance.to(torch.uint8))
+    rows.setdefault("obj_mask", []).append(out.obj_mask)
+    for k in LATENTS:
+        rows.setdefault(k, []).append(getattr(p, k))
+    if p.active is not None:
+        rows.setdefault("active", []).append(p.active)
+
+
 @torch.no_grad()
 def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
     """The model's unrefined decoding of scenes ``0 .. count-1``: composite colour (float16), instance
-    ids, slot silhouettes and latents, on the model's device."""
+    ids, slot silhouettes and latents (and ``active``, where the encoder leaves slots empty), on the model's device."""
     from tqdm import tqdm
 
     model.eval()
-    rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("comp", "instance", "obj_mask", "z_sh", "z_tex", "position", "cos_sin", "scale")}
+    rows: dict[str, list[torch.Tensor]] = {}
     for s in tqdm(range(0, count, batch_size), desc="encoder outputs", unit="batch", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
-        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
-        p = out.latents.params
-        rows["comp"].append(out.composite.image.half())
-        rows["instance"].append(out.composite.instance.to(torch.uint8))
-        rows["obj_mask"].append(out.obj_mask)
-        for k in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
-            rows[k].append(getattr(p, k))
-        if p.active is not None:
-            rows.setdefault("active", []).append(p.active)
+        _append_decoding(rows, model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False))
     return {k: torch.cat(v) for k, v in rows.items()}
 
 
@@ -152,19 +160,13 @@ def reanchor_cache(model, ds, count: int, batch_size: int = 64, progress: bool =
     if not (model.cfg.anchor and model.cfg.reanchor_steps and model.cfg.refine_passes):
         raise DistillError("reanchor_cache needs an anchored model with reanchor_steps and a refiner")
     model.eval()
-    rows: dict[str, list[torch.Tensor]] = {k: [] for k in ("comp", "instance", "obj_mask", "z_sh", "z_tex", "position", "cos_sin",
-                                                           "scale", "added")}
+    rows: dict[str, list[torch.Tensor]] = {"added": []}
     for s in tqdm(range(0, count, batch_size), desc="re-anchored slots", unit="batch", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
         out = model.refine_slots(model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam,
                                  b.ground_z)
         out, added = model.reanchor_slots(out, b.rgb, b.K, b.T_world_cam, b.ground_z)
-        p = out.latents.params
-        rows["comp"].append(out.composite.image.half())
-        rows["instance"].append(out.composite.instance.to(torch.uint8))
-        rows["obj_mask"].append(out.obj_mask)
-        for k in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
-            rows[k].append(getattr(p, k))
+        _append_decoding(rows, out)
         rows["added"].append(added)
     return {k: torch.cat(v) for k, v in rows.items()}
 
@@ -180,7 +182,7 @@ def reanchored_term(model, rcache, ds, targets: DistillTargets, idx: torch.Tenso
     idx = idx[rcache["added"][idx].any(1)]
     if not len(idx):
         return rcache["scale"].new_zeros(())
-    params = SceneParams(*(rcache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
+    params = SceneParams(*(rcache[k][idx] for k in LATENTS))
     delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, rcache, ds, idx, params)), model.cfg.refiner_keep)
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
     t, have = targets.lookup(idx)
@@ -240,7 +242,7 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     from prismonet.render import SceneParams
 
     idx = idx.to(cache["scale"].device)  # the batch, the cache and the targets go where the model is
-    params = SceneParams(*(cache[k][idx] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")))
+    params = SceneParams(*(cache[k][idx] for k in LATENTS))
     delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, cache, ds, idx, params)), model.cfg.refiner_keep)
     codes = model.shape_codes()
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range, codes=codes)  # every slot moves: the regression sees all
