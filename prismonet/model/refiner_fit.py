@@ -25,8 +25,8 @@ from pathlib import Path
 
 import torch
 
-from prismonet.model.distill import (SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights, distill_loss,
-                                     distill_terms, keep_loss, seen_slots, shown_mean)
+from prismonet.model.distill import (MIN_VISIBLE, SHAPE, VISIBLE, DistillError, DistillTargets, DistillWeights,
+                                     distill_loss, keep_loss, seen_slots, shown_mean)
 from prismonet.model.refiner import apply_correction, shape_labels, split_keep
 
 KEEP_WEIGHT = 0.2
@@ -187,14 +187,15 @@ def reanchored_term(model, rcache, ds, targets: DistillTargets, idx: torch.Tenso
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
     t, have = targets.lookup(idx)
     added = rcache["added"][idx].to(new.scale.dtype)
-    shown = seen_slots(t, added) * added
-    per_slot = sum(distill_terms(new, t, weights).values())
-    per_scene = (per_slot * shown).sum(1) / shown.sum(1).clamp_min(1.0)
+    shown = seen_slots(t, added)
+    # the regression over the shown re-anchored slots: ``distill_loss`` with the other slots marked hidden
+    loss = distill_loss(new, t["bg_color"], {**t, VISIBLE: shown * added * MIN_VISIBLE}, have,
+                        replace(weights, background=0.0))
     if keep_logit is not None:
-        bce = torch.nn.functional.binary_cross_entropy_with_logits(keep_logit.reshape(added.shape), seen_slots(t, added),
-                                                                   reduction="none")
-        per_scene = per_scene + KEEP_WEIGHT * (bce * added).sum(1) / added.sum(1)
-    return (per_scene * have).sum() / have.sum().clamp_min(1.0)
+        bce = torch.nn.functional.binary_cross_entropy_with_logits(keep_logit.reshape(added.shape), shown, reduction="none")
+        per_scene = (bce * added).sum(1) / added.sum(1)
+        loss = loss + KEEP_WEIGHT * (per_scene * have).sum() / have.sum().clamp_min(1.0)
+    return loss
 
 
 def cached_refiner_inputs(model, cache, ds, idx: torch.Tensor, params) -> tuple[torch.Tensor, torch.Tensor]:
@@ -349,7 +350,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
         if model.cfg.refiner_shape_codes or VISIBLE not in targets.t:
             raise DistillError("reanchored: needs targets that say which slots the fit shows, and a refiner without shape codes")
         rcache = reanchor_cache(model, ds, count, progress=progress)
-        if "active" not in (cache or {"active": None}):
+        if cache is not None and "active" not in cache:
             raise DistillError("reanchored: the encoder cache must hold the encoder's active slots (encoder_cache makes it)")
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = resume_part(ckpt, "refiner.", model.refiner, opt, record, DistillError)
