@@ -816,8 +816,8 @@ def test_keep_passes_drop_in_the_first_passes_only():
 
 
 def test_reanchor_cache_and_term_on_the_re_anchored_slots_only():
-    """``refiner_fit.reanchor_cache``: the slots it marks added are those the re-anchoring put into slots the refined
-    decoding left empty, and the others keep the refined latents exactly; ``reanchored_term``: with targets equal to the
+    """``refiner_fit.reanchor_cache``: the slots it marks as subjects are those the re-anchoring put into slots the
+    refined decoding left empty, and the others keep the refined latents exactly; ``subjects_term``: with targets equal to the
     corrected re-anchored slots, the term is the keep logits' cross-entropy alone (by hand), targets of the other slots
     do not move it, and a shifted target of a shown re-anchored slot adds its L1 distance."""
     from dataclasses import replace
@@ -828,7 +828,7 @@ def test_reanchor_cache_and_term_on_the_re_anchored_slots_only():
     from prismonet.model.io import load_model
     from prismonet.model.prismonet import PriSMONet
     from prismonet.model.refiner import split_keep
-    from prismonet.model.refiner_fit import KEEP_WEIGHT, cached_refiner_inputs, reanchor_cache, reanchored_term
+    from prismonet.model.refiner_fit import KEEP_WEIGHT, cached_refiner_inputs, reanchor_cache, subjects_term
     from prismonet.render import SceneParams
 
     shipped, _ = load_model("clevr1to8_keep")
@@ -840,7 +840,7 @@ def test_reanchor_cache_and_term_on_the_re_anchored_slots_only():
     with torch.no_grad():
         refined = m.refine_slots(m(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam, b.ground_z)
     before = refined.latents.params
-    added = rc["added"]
+    added = rc["subjects"]
     assert bool(added.any()) and not bool((added & before.active).any())
     assert torch.equal(rc["position"][~added], before.position[~added])
     fields = ("z_sh", "z_tex", "position", "cos_sin", "scale")
@@ -865,31 +865,69 @@ def test_reanchor_cache_and_term_on_the_re_anchored_slots_only():
     w = DistillWeights(background=0.0, texture=0.1)
     idx = torch.arange(16)
     with torch.no_grad():
-        got = float(reanchored_term(m, rc, ds, Targets(t), idx, w))
+        got = float(subjects_term(m, rc, ds, Targets(t), idx, w))
         shown = (visible >= MIN_VISIBLE).float()
         bce = torch.nn.functional.binary_cross_entropy_with_logits(keep.reshape(16, -1), shown, reduction="none")
         rows = added.any(1)
         want = float((KEEP_WEIGHT * (bce * added).sum(1)[rows] / added.sum(1)[rows]).mean())
         assert got == pytest.approx(want, rel=1e-5, abs=1e-6)
         t_other = {**t, "position": torch.where(added[..., None], t["position"], t["position"] + 5.0)}
-        assert float(reanchored_term(m, rc, ds, Targets(t_other), idx, w)) == pytest.approx(got, rel=1e-6)
+        assert float(subjects_term(m, rc, ds, Targets(t_other), idx, w)) == pytest.approx(got, rel=1e-6)
         s_, k_ = [int(v) for v in (added & (visible >= MIN_VISIBLE)).nonzero()[0]]
         t_moved = {**t, "position": t["position"].clone()}
         t_moved["position"][s_, k_, 0] += 0.3
         shown_here = float((added[s_] & (visible[s_] >= MIN_VISIBLE)).sum())
         extra = 0.3 / shown_here / int(rows.sum())
-        assert float(reanchored_term(m, rc, ds, Targets(t_moved), idx, w)) == pytest.approx(got + extra, rel=1e-4)
+        assert float(subjects_term(m, rc, ds, Targets(t_moved), idx, w)) == pytest.approx(got + extra, rel=1e-4)
         # beside it, the encoder's rows: a slot the encoder left empty is not a target of the whole model's
         from prismonet.model.refiner_fit import _loss, encoder_cache
 
         cache = encoder_cache(m, ds, 16, batch_size=16, progress=False)
         every = {**t, VISIBLE: torch.full_like(visible, 40.0)}
         masked = {**t, VISIBLE: torch.where(cache["active"], every[VISIBLE], torch.zeros_like(visible))}
-        none_added = {**rc, "added": torch.zeros_like(added)}
+        none_added = {**rc, "subjects": torch.zeros_like(added)}
         assert not bool(cache["active"].all())
-        a = float(_loss(m, cache, ds, Targets(every), idx, w, rcache=none_added, reanchored=1.0))
+        a = float(_loss(m, cache, ds, Targets(every), idx, w, later=((none_added, 1.0),)))
         assert a == pytest.approx(float(_loss(m, cache, ds, Targets(masked), idx, w)), rel=1e-6)
         assert a != pytest.approx(float(_loss(m, cache, ds, Targets(every), idx, w)), rel=1e-3)
+
+
+def test_second_pass_cache_is_what_the_second_pass_sees():
+    """``refiner_fit.second_pass_cache``: the slots it marks as subjects are those active after the first pass, and the
+    refiner's correction of them from the cached inputs (the composite kept in float16) gives the model's own two-pass
+    output (``refine_slots``) within 1e-3; a one-pass refiner is refused."""
+    from dataclasses import replace
+
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import DistillError
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+    from prismonet.model.refiner import apply_correction
+    from prismonet.model.refiner_fit import cached_refiner_inputs, second_pass_cache
+    from prismonet.render import SceneParams
+
+    shipped, _ = load_model("clevr1to8_keep")
+    ds = SceneDataset(samples_for("clevr1to8_keep"), split="test")
+    sc = second_pass_cache(shipped.eval(), ds, 16, batch_size=16, progress=False)
+    b = ds.batch(list(range(16)))
+    with torch.no_grad():
+        raw = shipped(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+        first = shipped._refine_pass(raw, b.rgb, b.K, b.T_world_cam, keep_above=shipped.cfg.refiner_keep_logit)
+        both = shipped.refine_slots(raw, b.rgb, b.K, b.T_world_cam, b.ground_z)
+        assert torch.equal(sc["subjects"], first.latents.params.active)
+        assert bool((~sc["subjects"] & raw.latents.params.active).any())  # the first pass dropped some
+        params = SceneParams(*(sc[k] for k in ("z_sh", "z_tex", "position", "cos_sin", "scale")), active=sc["subjects"])
+        delta = shipped.refiner(*cached_refiner_inputs(shipped, sc, ds, torch.arange(16), params))
+        new = apply_correction(params, delta, shipped.pos_scale, shipped.cfg.scale_range, True, shipped.cfg.refiner_keep_logit)
+    got, want = both.latents.params, new
+    assert torch.equal(got.active, want.active)
+    kept = got.active
+    assert torch.allclose(got.position[kept], want.position[kept], atol=1e-3)
+    assert torch.allclose(got.scale[kept], want.scale[kept], atol=1e-3)
+    one = PriSMONet(replace(shipped.cfg, refine_passes=1), prior=shipped.prior)
+    with pytest.raises(DistillError, match="two passes or more"):
+        second_pass_cache(one, ds, 16, progress=False)
 
 
 def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
@@ -1120,6 +1158,7 @@ def test_refiner_command_refuses_shape_codes_without_shape_in_one_line(tmp_path,
     ("clevr1to8_keep", [], "already has a refiner; start from its encoder's model, or --fine-tune it"),
     ("clevr1to8_keep", ["--fine-tune", "--keep"], "--fine-tune trains the model's own refiner"),
     ("clevr1to8_keep", ["--fine-tune", "--reanchored", "-1"], "reanchored must be >= 0"),
+    ("clevr1to8_keep", ["--fine-tune", "--second-pass", "-1"], "second_pass must be >= 0"),
 ])
 def test_refiner_command_fine_tune_refusals_in_one_line(model, extra, says, tmp_path, capsys):
     """``prismonet refiner``: a model with a refiner needs ``--fine-tune``, which keeps its refiner settings; a negative

@@ -70,7 +70,7 @@ def cmd_refiner(args) -> int:
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
                            texture=args.texture, color=args.color, true_poses=args.true_poses, fill_hidden=args.fill_hidden,
                            recolor=args.recolor, gray_share=1.0 if gray else args.gray_share, gray_targets=gray,
-                           reanchored=args.reanchored)  # validate first
+                           reanchored=args.reanchored, second_pass=args.second_pass)  # validate first
     base, info = load_model(args.checkpoint)
     if args.fine_tune:  # the model's own refiner, trained on
         if not base.cfg.refine_passes or args.glimpse or args.coords or args.shape or args.shape_codes or args.keep:
@@ -213,6 +213,10 @@ def _add_refiner_parser(sub) -> None:
                    help="with --fine-tune on an anchored model with re-anchoring: also fit the refiner on the slots the "
                         "re-anchoring adds, with weight W, against targets `distill` made from CHECKPOINT itself (keep bars "
                         "off, so that no slot is dropped); 0: off")
+    r.add_argument("--second-pass", type=float, default=0.0, metavar="W",
+                   help="with --fine-tune on a model of two refinement passes or more: also fit the refiner on what its "
+                        "second pass sees (the first pass's output), with weight W, against targets `distill` made from "
+                        "the whole model (keep bars off); 0: off")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

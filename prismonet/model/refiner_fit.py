@@ -7,7 +7,9 @@
    latents (position, scale, yaw, texture, and the shape when the refiner corrects it and the targets have shapes;
    hidden slots are not targets). A refiner with a keep output also learns which slots the fit shows
    (``KEEP_WEIGHT``), hidden ones included. No render is needed, so a step
-   costs a few milliseconds.
+   costs a few milliseconds. Optional later-pass terms fit it on what its later passes see as well, each from a cache
+   made once by the refiner the fit starts from: the slots the re-anchoring adds (``reanchored``, ``reanchor_cache``)
+   and the first pass's output (``second_pass``, ``second_pass_cache``); ``subjects_term`` is their loss.
 3. The last ``holdout`` scenes with targets are held out: their loss is logged beside the loss of no
    correction at all, so a run shows how much of the way to the search it goes on scenes it did not fit.
 
@@ -80,6 +82,12 @@ class RefinerFitConfig:
     off). The encoder's rows of the slots it left empty are then not targets. Needs an anchored model with
     ``reanchor_steps`` and a refiner, whose current refiner makes the re-anchored slots (EVALUATION.md, "Session 96").
     0: off (the fits before session 96)."""
+    second_pass: float = 0.0
+    """> 0: the refiner is also fitted on what its second pass sees (``second_pass_cache``: the decoding after the
+    model's first pass, the slots that pass dropped left out), with this weight, against targets made by the whole
+    model as for ``reanchored``. The first pass's inputs are the encoder's decoding, the later passes' are the
+    refiner's own output, which a fit on the encoder's rows alone never shows it. Needs a model with a refiner of two
+    passes or more, whose current refiner makes the cache (EVALUATION.md, "Session 97"). 0: off."""
     gray_targets: bool = False
     """The targets were fitted on the grey scenes themselves (``prismonet distill --gray``, ``DistillTargets.gray``): slot
     k's target is what the grey decoding's slot k found, and its texture latent a grey fit. Needs ``gray_share`` 1;
@@ -99,9 +107,11 @@ class RefinerFitConfig:
         if not 0 <= self.gray_share <= 1 or (self.gray_share > 0 and not self.gray_targets and (self.texture > 0 or self.color > 0)):
             raise ValueError("refiner fit: gray_share must be in [0, 1], and with it texture = 0 and color = 0 (a grey scene "
                              f"does not show the targets' colours), got {self.gray_share}, {self.texture}, {self.color}")
-        if self.reanchored < 0 or (self.reanchored > 0 and (self.true_poses or self.recolor or self.gray_share > 0)):
-            raise ValueError(f"refiner fit: reanchored must be >= 0, and cannot be used with true_poses, recolor or "
-                             f"gray_share, got {self.reanchored}")
+        for name in ("reanchored", "second_pass"):
+            w = getattr(self, name)
+            if w < 0 or (w > 0 and (self.true_poses or self.recolor or self.gray_share > 0)):
+                raise ValueError(f"refiner fit: {name} must be >= 0, and cannot be used with true_poses, recolor or "
+                                 f"gray_share, got {w}")
         if self.weight_decay < 0 or self.texture < 0 or self.color < 0:
             raise ValueError(f"refiner fit: weight_decay, texture and color must be >= 0, got {self.weight_decay}, {self.texture}, {self.color}")
 
@@ -153,42 +163,64 @@ def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = 
 def reanchor_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
     """What the refiner's passes on re-anchored slots see, for scenes ``0 .. count-1``: the model decodes each scene,
     refines it (``refine_slots``) and re-anchors it (``reanchor_slots``), as at inference; the composite, instance ids,
-    slot silhouettes and latents of that moment (``encoder_cache``'s fields) and ``added (S, N)``, the slots the
-    re-anchoring put in. Needs an anchored model with ``reanchor_steps`` and a refiner."""
+    slot silhouettes and latents of that moment (``encoder_cache``'s fields) and ``subjects (S, N)``, the slots the
+    re-anchoring put in (those the passes then act on). Needs an anchored model with ``reanchor_steps`` and a refiner."""
     from tqdm import tqdm
 
     if not (model.cfg.anchor and model.cfg.reanchor_steps and model.cfg.refine_passes):
         raise DistillError("reanchor_cache needs an anchored model with reanchor_steps and a refiner")
     model.eval()
-    rows: dict[str, list[torch.Tensor]] = {"added": []}
+    rows: dict[str, list[torch.Tensor]] = {"subjects": []}
     for s in tqdm(range(0, count, batch_size), desc="re-anchored slots", unit="batch", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
         out = model.refine_slots(model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam,
                                  b.ground_z)
         out, added = model.reanchor_slots(out, b.rgb, b.K, b.T_world_cam, b.ground_z)
         _append_decoding(rows, out)
-        rows["added"].append(added)
+        rows["subjects"].append(added)
     return {k: torch.cat(v) for k, v in rows.items()}
 
 
-def reanchored_term(model, rcache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
-    """``()``: the refiner's loss on the re-anchored slots of scenes ``idx`` (``reanchor_cache``'s ``rcache``): the
-    regression onto their targets over those the fit shows, plus ``KEEP_WEIGHT`` times the keep logits' binary
-    cross-entropy over all of them, each a mean over a scene's re-anchored slots, then over the scenes that have
-    targets and re-anchored slots (0 when none has)."""
+@torch.no_grad()
+def second_pass_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
+    """What the refiner's second pass sees, for scenes ``0 .. count-1``: the model decodes each scene and takes its
+    first refinement pass as at inference (its keep bar included); the composite, instance ids, slot silhouettes and
+    latents after it (``encoder_cache``'s fields) and ``subjects (S, N)``, the slots still active, on which the second
+    pass acts. Needs a refiner of two passes or more."""
+    from tqdm import tqdm
+
+    if model.cfg.refine_passes < 2:
+        raise DistillError(f"second_pass_cache needs a refiner of two passes or more, the model has {model.cfg.refine_passes}")
+    model.eval()
+    rows: dict[str, list[torch.Tensor]] = {"subjects": []}
+    for s in tqdm(range(0, count, batch_size), desc="first-pass outputs", unit="batch", disable=not progress):
+        b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
+        out = model._refine_pass(out, b.rgb, b.K, b.T_world_cam, keep_above=model._keep_bar(0, model.cfg.refiner_keep_logit))
+        _append_decoding(rows, out)
+        p = out.latents.params
+        rows["subjects"].append(p.active if p.active is not None else torch.ones_like(p.scale, dtype=torch.bool))
+    return {k: torch.cat(v) for k, v in rows.items()}
+
+
+def subjects_term(model, scache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
+    """``()``: the refiner's loss on the subject slots of scenes ``idx`` in a cache of what a later pass sees
+    (``reanchor_cache``, ``second_pass_cache``: ``scache``): the regression onto their targets over those the fit shows,
+    plus ``KEEP_WEIGHT`` times the keep logits' binary cross-entropy over all of them, each a mean over a scene's
+    subjects, then over the scenes that have targets and subjects (0 when none has)."""
     from prismonet.render import SceneParams
 
-    idx = idx.to(rcache["scale"].device)
-    idx = idx[rcache["added"][idx].any(1)]
+    idx = idx.to(scache["scale"].device)
+    idx = idx[scache["subjects"][idx].any(1)]
     if not len(idx):
-        return rcache["scale"].new_zeros(())
-    params = SceneParams(*(rcache[k][idx] for k in LATENTS))
-    delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, rcache, ds, idx, params)), model.cfg.refiner_keep)
+        return scache["scale"].new_zeros(())
+    params = SceneParams(*(scache[k][idx] for k in LATENTS))
+    delta, keep_logit = split_keep(model.refiner(*cached_refiner_inputs(model, scache, ds, idx, params)), model.cfg.refiner_keep)
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range)
     t, have = targets.lookup(idx)
-    added = rcache["added"][idx].to(new.scale.dtype)
+    added = scache["subjects"][idx].to(new.scale.dtype)
     shown = seen_slots(t, added)
-    # the regression over the shown re-anchored slots: ``distill_loss`` with the other slots marked hidden
+    # the regression over the shown subjects: ``distill_loss`` with the other slots marked hidden
     loss = distill_loss(new, t["bg_color"], {**t, VISIBLE: shown * added * MIN_VISIBLE}, have,
                         replace(weights, background=0.0))
     if keep_logit is not None:
@@ -239,7 +271,10 @@ def shape_choice_term(logits: torch.Tensor, own: torch.Tensor, targets: dict[str
 
 
 def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0,
-          rcache: dict[str, torch.Tensor] | None = None, reanchored: float = 0.0) -> torch.Tensor:
+          later: tuple[tuple[dict[str, torch.Tensor], float], ...] = ()) -> torch.Tensor:
+    """The fit's loss on scenes ``idx``: the refiner on the encoder's rows (``cache``), plus ``weight *
+    subjects_term`` for each ``(cache, weight)`` of ``later``, caches of what later passes see (made with targets of the
+    whole model: a slot the encoder left empty is then no target of the encoder's rows)."""
     from prismonet.render import SceneParams
 
     idx = idx.to(cache["scale"].device)  # the batch, the cache and the targets go where the model is
@@ -248,7 +283,7 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
     codes = model.shape_codes()
     new = apply_correction(params, delta, model.pos_scale, model.cfg.scale_range, codes=codes)  # every slot moves: the regression sees all
     t, have = targets.lookup(idx)
-    if rcache is not None and "active" in cache:  # targets of the whole model: a slot the encoder left empty is not its
+    if later and "active" in cache:  # targets of the whole model: a slot the encoder left empty is not its
         t = {**t, VISIBLE: torch.where(cache["active"][idx], t[VISIBLE], torch.zeros_like(t[VISIBLE]))}
     if codes is not None:  # the shape is a choice, fitted by its own term, not regressed
         weights = replace(weights, shape=0.0)
@@ -261,16 +296,16 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
         loss = loss + color * color_term(model.color_fn, new.z_tex, t["z_tex"], t, have, color_points())
     if keep_logit is not None:
         loss = loss + KEEP_WEIGHT * keep_loss(keep_logit.reshape(len(idx), -1), t, have)
-    if rcache is not None:
-        loss = loss + reanchored * reanchored_term(model, rcache, ds, targets, idx, weights)
+    for scache, w in later:
+        loss = loss + w * subjects_term(model, scache, ds, targets, idx, weights)
     return loss
 
 
 def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128, color: float = 0.0,
-                   rcache: dict[str, torch.Tensor] | None = None, reanchored: float = 0.0) -> float:
+                   later: tuple[tuple[dict[str, torch.Tensor], float], ...] = ()) -> float:
     model.refiner.eval()
     with torch.no_grad():
-        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights, color, rcache, reanchored),
+        parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights, color, later),
                   len(idx[i:i + batch])) for i in range(0, len(idx), batch)]
     model.refiner.train()
     return float(sum(l * n for l, n in parts) / max(1, sum(n for _, n in parts)))
@@ -284,6 +319,22 @@ def refiner_record(model) -> dict:
     names = ("refiner_glimpse", "refiner_coords", "refiner_channels", "refiner_fc", "refiner_shape", "refiner_shape_codes",
              "refiner_keep")
     return {n.removeprefix("refiner_"): getattr(model.cfg, n) for n in names if getattr(model.cfg, n) != getattr(default, n)}
+
+
+def _later_caches(model, ds, count: int, cfg: RefinerFitConfig, targets: DistillTargets, cache, progress: bool
+                  ) -> tuple[tuple[dict[str, torch.Tensor], float], ...]:
+    """The ``(cache, weight)`` of each later-pass term the fit has on (``reanchored``, ``second_pass``), made by the
+    refiner the fit starts from, before a resumed run loads its later weights."""
+    makers = [(w, make) for w, make in ((cfg.reanchored, reanchor_cache), (cfg.second_pass, second_pass_cache)) if w]
+    if not makers:
+        return ()
+    if model.cfg.refiner_shape_codes or VISIBLE not in targets.t:
+        raise DistillError("reanchored, second_pass: need targets that say which slots the fit shows, and a refiner "
+                           "without shape codes")
+    if cache is not None and "active" not in cache:
+        raise DistillError("reanchored, second_pass: the encoder cache must hold the encoder's active slots "
+                           "(encoder_cache makes it)")
+    return tuple((make(model, ds, count, progress=progress), w) for w, make in makers)
 
 
 def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: RefinerFitConfig = RefinerFitConfig(),
@@ -320,7 +371,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     # the options added later are recorded only when on, so runs made before them resume
     fit = {k: v for k, v in asdict(cfg).items()
            if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share", "gray_targets",
-                                          "reanchored") and not v)}
+                                          "reanchored", "second_pass") and not v)}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
@@ -345,13 +396,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     ckpt = out / "checkpoint.safetensors"
     model.to(device)
     weights = DistillWeights(background=0.0, texture=cfg.texture)
-    rcache = None
-    if cfg.reanchored:  # made by the refiner the fit starts from, before a resumed run loads its later weights
-        if model.cfg.refiner_shape_codes or VISIBLE not in targets.t:
-            raise DistillError("reanchored: needs targets that say which slots the fit shows, and a refiner without shape codes")
-        rcache = reanchor_cache(model, ds, count, progress=progress)
-        if cache is not None and "active" not in cache:
-            raise DistillError("reanchored: the encoder cache must hold the encoder's active slots (encoder_cache makes it)")
+    later = _later_caches(model, ds, count, cfg, targets, cache, progress)
     opt = torch.optim.AdamW(model.refiner.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = resume_part(ckpt, "refiner.", model.refiner, opt, record, DistillError)
     if 0 < cfg.steps <= step:  # a finished run resumed: no step left to take, so no cache to make (minutes of decoding)
@@ -365,17 +410,15 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
     log = out / "log.jsonl"
-    if rcache is not None:
-        rcache = {k: v.to(device) for k, v in rcache.items()}
-    held_out = lambda: _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color, rcache=rcache,  # noqa: E731
-                                      reanchored=cfg.reanchored)
+    later = tuple(({k: v.to(device) for k, v in c.items()}, w) for c, w in later)
+    held_out = lambda: _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color, later=later)  # noqa: E731
     if step == 0:
         log.write_text("")
         append_row(log, {"step": 0, "held_out": held_out()})  # the refiner as it starts (no correction when fresh)
 
     def loss_at(at: int) -> torch.Tensor:
         return _loss(model, cache, ds, targets, batch_indices(cfg.seed, at, train_n, cfg.batch_size), weights, cfg.color,
-                     rcache, cfg.reanchored)
+                     later)
 
     def report(at: int, train: float) -> str:
         row = {"step": at, "train": train, "held_out": held_out()}
