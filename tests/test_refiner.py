@@ -913,7 +913,7 @@ def test_second_pass_cache_is_what_the_second_pass_sees():
     b = ds.batch(list(range(16)))
     with torch.no_grad():
         raw = shipped(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
-        first = shipped._refine_pass(raw, b.rgb, b.K, b.T_world_cam, keep_above=shipped.cfg.refiner_keep_logit)
+        first = shipped.refine_pass(raw, b.rgb, b.K, b.T_world_cam, 0)
         both = shipped.refine_slots(raw, b.rgb, b.K, b.T_world_cam, b.ground_z)
         assert torch.equal(sc["subjects"], first.latents.params.active)
         assert bool((~sc["subjects"] & raw.latents.params.active).any())  # the first pass dropped some

@@ -324,8 +324,14 @@ class PriSMONet(nn.Module):
         it is): each corrects every active slot of ``out`` from its render against ``image``, then renders all
         again."""
         for i in range(self.cfg.refine_passes):
-            out = self._refine_pass(out, image, K, T_world_cam, keep_above=self._keep_bar(i, self.cfg.refiner_keep_logit))
+            out = self.refine_pass(out, image, K, T_world_cam, i)
         return out
+
+    def refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+                    index: int = 0) -> ModelOutput:
+        """Refinement pass ``index`` (from 0) of ``refine_slots`` on ``out``, with that pass's keep bar: what the
+        passes before it hand on is what a later pass sees (``refiner_fit.second_pass_cache``)."""
+        return self._refine_pass(out, image, K, T_world_cam, keep_above=self._keep_bar(index, self.cfg.refiner_keep_logit))
 
     def _keep_bar(self, pass_index: int, bar: float | None) -> float | None:
         """The keep bar of refinement pass ``pass_index`` (from 0): ``bar``, or ``None`` (no slot dropped) after the

@@ -196,7 +196,7 @@ def second_pass_cache(model, ds, count: int, batch_size: int = 64, progress: boo
     for s in tqdm(range(0, count, batch_size), desc="first-pass outputs", unit="batch", disable=not progress):
         b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
         out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
-        out = model._refine_pass(out, b.rgb, b.K, b.T_world_cam, keep_above=model._keep_bar(0, model.cfg.refiner_keep_logit))
+        out = model.refine_pass(out, b.rgb, b.K, b.T_world_cam, 0)
         _append_decoding(rows, out)
         p = out.latents.params
         rows["subjects"].append(p.active if p.active is not None else torch.ones_like(p.scale, dtype=torch.bool))
