@@ -887,7 +887,7 @@ def test_reanchor_cache_and_term_on_the_re_anchored_slots_only():
         masked = {**t, VISIBLE: torch.where(cache["active"], every[VISIBLE], torch.zeros_like(visible))}
         none_added = {**rc, "subjects": torch.zeros_like(added)}
         assert not bool(cache["active"].all())
-        a = float(_loss(m, cache, ds, Targets(every), idx, w, later=((none_added, 1.0),)))
+        a = float(_loss(m, cache, ds, Targets(every), idx, w, later=((none_added, 1.0, True),)))
         assert a == pytest.approx(float(_loss(m, cache, ds, Targets(masked), idx, w)), rel=1e-6)
         assert a != pytest.approx(float(_loss(m, cache, ds, Targets(every), idx, w)), rel=1e-3)
 
@@ -928,6 +928,44 @@ def test_second_pass_cache_is_what_the_second_pass_sees():
     one = PriSMONet(replace(shipped.cfg, refine_passes=1), prior=shipped.prior)
     with pytest.raises(DistillError, match="two passes or more"):
         second_pass_cache(one, ds, 16, progress=False)
+
+
+def test_second_pass_term_without_the_shape_ignores_the_shape_targets():
+    """``RefinerFitConfig.second_pass_shape`` ``False``: the second-pass term leaves the shape latent out, so moving
+    the targets' shape latents changes the fit's loss by exactly what it changes the encoder rows' term; with the shape
+    kept, by more. On the default model (a refiner that corrects shapes) and its sample scenes."""
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.distill import SHAPE, VISIBLE, DistillWeights
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import _loss, encoder_cache, second_pass_cache
+
+    m, _ = load_model("shipped")
+    assert m.cfg.refiner_shape and m.cfg.refine_passes == 2
+    ds = SceneDataset(samples_for("shipped"), split="test")
+    n = 8
+    cache = encoder_cache(m.eval(), ds, n, batch_size=n, progress=False)
+    sc = second_pass_cache(m, ds, n, batch_size=n, progress=False)
+
+    class Targets:  # DistillTargets' lookup, in memory
+        def __init__(self, t):
+            self.t = t
+
+        def lookup(self, idx):
+            return {k: v[idx] for k, v in self.t.items()}, torch.ones(len(idx))
+
+    t = {k: cache[k].float().clone() for k in ("scale", "position", "cos_sin", "z_tex", "z_sh")}
+    t.update(bg_color=torch.zeros(n, 3), **{VISIBLE: torch.full_like(t["scale"], 40.0)})
+    moved = {**t, SHAPE: t[SHAPE] + 0.2}
+    w, idx = DistillWeights(background=0.0, texture=0.1), torch.arange(n)
+    with torch.no_grad():
+        def change(later):
+            return float(_loss(m, cache, ds, Targets(moved), idx, w, later=later)) - float(_loss(m, cache, ds, Targets(t), idx, w, later=later))
+
+        main = change(())
+        assert main > 0.01
+        assert change(((sc, 1.0, False),)) == pytest.approx(main, rel=1e-4, abs=1e-6)
+        assert change(((sc, 1.0, True),)) > main + 0.01
 
 
 def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):

@@ -70,7 +70,8 @@ def cmd_refiner(args) -> int:
     cfg = RefinerFitConfig(steps=args.steps, batch_size=args.batch, lr=args.lr, holdout=args.holdout, seed=args.seed,
                            texture=args.texture, color=args.color, true_poses=args.true_poses, fill_hidden=args.fill_hidden,
                            recolor=args.recolor, gray_share=1.0 if gray else args.gray_share, gray_targets=gray,
-                           reanchored=args.reanchored, second_pass=args.second_pass)  # validate first
+                           reanchored=args.reanchored, second_pass=args.second_pass,
+                           second_pass_shape=not args.second_pass_no_shape)  # validate first
     base, info = load_model(args.checkpoint)
     if args.fine_tune:  # the model's own refiner, trained on
         if not base.cfg.refine_passes or args.glimpse or args.coords or args.shape or args.shape_codes or args.keep:
@@ -217,6 +218,8 @@ def _add_refiner_parser(sub) -> None:
                    help="with --fine-tune on a model of two refinement passes or more: also fit the refiner on what its "
                         "second pass sees (the first pass's output), with weight W, against targets `distill` made from "
                         "the whole model (keep bars off); 0: off")
+    r.add_argument("--second-pass-no-shape", action="store_true",
+                   help="with --second-pass and a refiner that corrects shapes: leave the shape latent out of that term")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

@@ -88,6 +88,9 @@ class RefinerFitConfig:
     model as for ``reanchored``. The first pass's inputs are the encoder's decoding, the later passes' are the
     refiner's own output, which a fit on the encoder's rows alone never shows it. Needs a model with a refiner of two
     passes or more, whose current refiner makes the cache (EVALUATION.md, "Session 97"). 0: off."""
+    second_pass_shape: bool = True
+    """With ``second_pass`` and a refiner that corrects shapes: the second-pass term regresses the shape latent too.
+    ``False``: its shape weight is 0, so the shape step is fitted on the encoder's rows alone."""
     gray_targets: bool = False
     """The targets were fitted on the grey scenes themselves (``prismonet distill --gray``, ``DistillTargets.gray``): slot
     k's target is what the grey decoding's slot k found, and its texture latent a grey fit. Needs ``gray_share`` 1;
@@ -271,10 +274,11 @@ def shape_choice_term(logits: torch.Tensor, own: torch.Tensor, targets: dict[str
 
 
 def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights, color: float = 0.0,
-          later: tuple[tuple[dict[str, torch.Tensor], float], ...] = ()) -> torch.Tensor:
+          later: tuple[tuple[dict[str, torch.Tensor], float, bool], ...] = ()) -> torch.Tensor:
     """The fit's loss on scenes ``idx``: the refiner on the encoder's rows (``cache``), plus ``weight *
-    subjects_term`` for each ``(cache, weight)`` of ``later``, caches of what later passes see (made with targets of the
-    whole model: a slot the encoder left empty is then no target of the encoder's rows)."""
+    subjects_term`` for each ``(cache, weight, shape)`` of ``later``, caches of what later passes see (``shape``
+    ``False``: without the shape latent's regression), made with targets of the whole model: a slot the encoder left
+    empty is then no target of the encoder's rows."""
     from prismonet.render import SceneParams
 
     idx = idx.to(cache["scale"].device)  # the batch, the cache and the targets go where the model is
@@ -296,13 +300,13 @@ def _loss(model, cache, ds, targets: DistillTargets, idx: torch.Tensor, weights:
         loss = loss + color * color_term(model.color_fn, new.z_tex, t["z_tex"], t, have, color_points())
     if keep_logit is not None:
         loss = loss + KEEP_WEIGHT * keep_loss(keep_logit.reshape(len(idx), -1), t, have)
-    for scache, w in later:
-        loss = loss + w * subjects_term(model, scache, ds, targets, idx, weights)
+    for scache, w, shape in later:
+        loss = loss + w * subjects_term(model, scache, ds, targets, idx, weights if shape else replace(weights, shape=0.0))
     return loss
 
 
 def _held_out_loss(model, cache, ds, targets, idx: torch.Tensor, weights, batch: int = 128, color: float = 0.0,
-                   later: tuple[tuple[dict[str, torch.Tensor], float], ...] = ()) -> float:
+                   later: tuple[tuple[dict[str, torch.Tensor], float, bool], ...] = ()) -> float:
     model.refiner.eval()
     with torch.no_grad():
         parts = [(_loss(model, cache, ds, targets, idx[i:i + batch], weights, color, later),
@@ -322,10 +326,11 @@ def refiner_record(model) -> dict:
 
 
 def _later_caches(model, ds, count: int, cfg: RefinerFitConfig, targets: DistillTargets, cache, progress: bool
-                  ) -> tuple[tuple[dict[str, torch.Tensor], float], ...]:
-    """The ``(cache, weight)`` of each later-pass term the fit has on (``reanchored``, ``second_pass``), made by the
-    refiner the fit starts from, before a resumed run loads its later weights."""
-    makers = [(w, make) for w, make in ((cfg.reanchored, reanchor_cache), (cfg.second_pass, second_pass_cache)) if w]
+                  ) -> tuple[tuple[dict[str, torch.Tensor], float, bool], ...]:
+    """The ``(cache, weight, shape)`` of each later-pass term the fit has on (``reanchored``, ``second_pass``), made by
+    the refiner the fit starts from, before a resumed run loads its later weights."""
+    makers = [(w, make, shape) for w, make, shape in ((cfg.reanchored, reanchor_cache, True),
+                                                      (cfg.second_pass, second_pass_cache, cfg.second_pass_shape)) if w]
     if not makers:
         return ()
     if model.cfg.refiner_shape_codes or VISIBLE not in targets.t:
@@ -334,7 +339,7 @@ def _later_caches(model, ds, count: int, cfg: RefinerFitConfig, targets: Distill
     if cache is not None and "active" not in cache:
         raise DistillError("reanchored, second_pass: the encoder cache must hold the encoder's active slots "
                            "(encoder_cache makes it)")
-    return tuple((make(model, ds, count, progress=progress), w) for w, make in makers)
+    return tuple((make(model, ds, count, progress=progress), w, shape) for w, make, shape in makers)
 
 
 def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: RefinerFitConfig = RefinerFitConfig(),
@@ -371,7 +376,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     # the options added later are recorded only when on, so runs made before them resume
     fit = {k: v for k, v in asdict(cfg).items()
            if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share", "gray_targets",
-                                          "reanchored", "second_pass") and not v)}
+                                          "reanchored", "second_pass") and not v)
+           and not (k == "second_pass_shape" and (v or not cfg.second_pass))}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
         record["refiner"] = refiner_record(model)
@@ -410,7 +416,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     train_n = count - cfg.holdout
     held = torch.arange(train_n, count)
     log = out / "log.jsonl"
-    later = tuple(({k: v.to(device) for k, v in c.items()}, w) for c, w in later)
+    later = tuple(({k: v.to(device) for k, v in c.items()}, w, shape) for c, w, shape in later)
     held_out = lambda: _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color, later=later)  # noqa: E731
     if step == 0:
         log.write_text("")
