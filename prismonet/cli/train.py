@@ -216,8 +216,8 @@ def _add_refiner_parser(sub) -> None:
                         "off, so that no slot is dropped); 0: off")
     r.add_argument("--second-pass", type=float, default=0.0, metavar="W",
                    help="with --fine-tune on a model of two refinement passes or more: also fit the refiner on what its "
-                        "second pass sees (the first pass's output), with weight W, against targets `distill` made from "
-                        "the whole model (keep bars off); 0: off")
+                        "second pass sees (the first pass's output), with weight W, against the same targets (in the "
+                        "model's slot order: made by CHECKPOINT, or by its encoder where slots keep their order); 0: off")
     r.add_argument("--second-pass-no-shape", action="store_true",
                    help="with --second-pass and a refiner that corrects shapes: leave the shape latent out of that term")
     r.add_argument("--targets-from", default=None, metavar="MODEL",

@@ -84,8 +84,9 @@ class RefinerFitConfig:
     0: off (the fits before session 96)."""
     second_pass: float = 0.0
     """> 0: the refiner is also fitted on what its second pass sees (``second_pass_cache``: the decoding after the
-    model's first pass, the slots that pass dropped left out), with this weight, against targets made by the whole
-    model as for ``reanchored``. The first pass's inputs are the encoder's decoding, the later passes' are the
+    model's first pass, the slots that pass dropped left out), with this weight, against the same targets, which must
+    be in the model's slot order (made by the model, or by its encoder where refinement keeps the slots' order; for
+    an anchored model that re-anchors, by the whole model as for ``reanchored``). The first pass's inputs are the encoder's decoding, the later passes' are the
     refiner's own output, which a fit on the encoder's rows alone never shows it. Needs a model with a refiner of two
     passes or more, whose current refiner makes the cache (EVALUATION.md, "Session 97"). 0: off."""
     second_pass_shape: bool = True
