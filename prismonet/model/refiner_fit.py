@@ -150,61 +150,58 @@ def _append_decoding(rows: dict[str, list[torch.Tensor]], out) -> None:
 
 
 @torch.no_grad()
-def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
-    """The model's unrefined decoding of scenes ``0 .. count-1``: composite colour (float16), instance
-    ids, slot silhouettes and latents (and ``active``, where the encoder leaves slots empty), on the model's device."""
+def _decoding_cache(model, ds, count: int, batch_size: int, progress: bool, desc: str, decode) -> dict[str, torch.Tensor]:
+    """A cache of scenes ``0 .. count-1``, a batch at a time: ``decode(batch)`` gives a decoding and ``(B, N)`` bool, the
+    slots a later pass acts on (``subjects``; ``None``: no such field), kept with ``_append_decoding``'s fields."""
     from tqdm import tqdm
 
     model.eval()
     rows: dict[str, list[torch.Tensor]] = {}
-    for s in tqdm(range(0, count, batch_size), desc="encoder outputs", unit="batch", disable=not progress):
-        b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
-        _append_decoding(rows, model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False))
+    for s in tqdm(range(0, count, batch_size), desc=desc, unit="batch", disable=not progress):
+        out, subjects = decode(ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device))
+        _append_decoding(rows, out)
+        if subjects is not None:
+            rows.setdefault("subjects", []).append(subjects)
     return {k: torch.cat(v) for k, v in rows.items()}
 
 
-@torch.no_grad()
+def encoder_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
+    """The model's unrefined decoding of scenes ``0 .. count-1``: composite colour (float16), instance
+    ids, slot silhouettes and latents (and ``active``, where the encoder leaves slots empty), on the model's device."""
+    return _decoding_cache(model, ds, count, batch_size, progress, "encoder outputs",
+                           lambda b: (model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), None))
+
+
 def reanchor_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
     """What the refiner's passes on re-anchored slots see, for scenes ``0 .. count-1``: the model decodes each scene,
     refines it (``refine_slots``) and re-anchors it (``reanchor_slots``), as at inference; the composite, instance ids,
     slot silhouettes and latents of that moment (``encoder_cache``'s fields) and ``subjects (S, N)``, the slots the
     re-anchoring put in (those the passes then act on). Needs an anchored model with ``reanchor_steps`` and a refiner."""
-    from tqdm import tqdm
-
     if not (model.cfg.anchor and model.cfg.reanchor_steps and model.cfg.refine_passes):
         raise DistillError("reanchor_cache needs an anchored model with reanchor_steps and a refiner")
-    model.eval()
-    rows: dict[str, list[torch.Tensor]] = {"subjects": []}
-    for s in tqdm(range(0, count, batch_size), desc="re-anchored slots", unit="batch", disable=not progress):
-        b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
+
+    def decode(b):
         out = model.refine_slots(model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam,
                                  b.ground_z)
-        out, added = model.reanchor_slots(out, b.rgb, b.K, b.T_world_cam, b.ground_z)
-        _append_decoding(rows, out)
-        rows["subjects"].append(added)
-    return {k: torch.cat(v) for k, v in rows.items()}
+        return model.reanchor_slots(out, b.rgb, b.K, b.T_world_cam, b.ground_z)
+
+    return _decoding_cache(model, ds, count, batch_size, progress, "re-anchored slots", decode)
 
 
-@torch.no_grad()
 def second_pass_cache(model, ds, count: int, batch_size: int = 64, progress: bool = True) -> dict[str, torch.Tensor]:
     """What the refiner's second pass sees, for scenes ``0 .. count-1``: the model decodes each scene and takes its
     first refinement pass as at inference (its keep bar included); the composite, instance ids, slot silhouettes and
     latents after it (``encoder_cache``'s fields) and ``subjects (S, N)``, the slots still active, on which the second
     pass acts. Needs a refiner of two passes or more."""
-    from tqdm import tqdm
-
     if model.cfg.refine_passes < 2:
         raise DistillError(f"second_pass_cache needs a refiner of two passes or more, the model has {model.cfg.refine_passes}")
-    model.eval()
-    rows: dict[str, list[torch.Tensor]] = {"subjects": []}
-    for s in tqdm(range(0, count, batch_size), desc="first-pass outputs", unit="batch", disable=not progress):
-        b = ds.batch(list(range(s, min(s + batch_size, count)))).to(model.pos_scale.device)
-        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False)
-        out = model.refine_pass(out, b.rgb, b.K, b.T_world_cam, 0)
-        _append_decoding(rows, out)
+
+    def decode(b):
+        out = model.refine_pass(model(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False), b.rgb, b.K, b.T_world_cam, 0)
         p = out.latents.params
-        rows["subjects"].append(p.active if p.active is not None else torch.ones_like(p.scale, dtype=torch.bool))
-    return {k: torch.cat(v) for k, v in rows.items()}
+        return out, p.active if p.active is not None else torch.ones_like(p.scale, dtype=torch.bool)
+
+    return _decoding_cache(model, ds, count, batch_size, progress, "first-pass outputs", decode)
 
 
 def subjects_term(model, scache, ds, targets: DistillTargets, idx: torch.Tensor, weights: DistillWeights) -> torch.Tensor:
