@@ -39,7 +39,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"model_variant: error: {key!r} is not a ModelConfig field", file=sys.stderr)
             return 2
         info["model"][key] = json.loads(value)
-    _build(ModelConfig, info["model"], "model.")  # checks the values as load_model does
+    try:
+        _build(ModelConfig, info["model"], "model.")  # checks the values as load_model does
+    except (TypeError, ValueError) as e:
+        print(f"model_variant: error: {e}", file=sys.stderr)
+        return 2
     from prismonet.files import write_atomic
 
     out = Path(argv[1])

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from prismonet.model.refiner import (IN_CHANNELS, MAX_LOG_SCALE, MAX_TURN, active_rows, apply_correction, centre_pixels,
-                                     choose_shapes, glimpse, refiner_inputs, shape_labels, slot_latents, slot_views,
-                                     snap_shapes, with_coords)
+                                     choose_shapes, glimpse, hold_cells, refiner_inputs, shape_labels, slot_latents,
+                                     slot_views, snap_shapes, with_coords)
 from prismonet.render import SceneParams
 
 
@@ -118,6 +118,55 @@ def test_snap_shapes_hand_computed():
         assert torch.equal(getattr(new, name), getattr(p, name))
 
 
+def test_hold_cells_hand_computed():
+    """``hold_cells``: a slot's stepped latent where its nearest code is the one nearest before the step, else the
+    latent before it."""
+    codes = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, -1.0]])
+    before = torch.tensor([[[0.9, 0.2], [0.9, 0.2], [-0.1, 0.6]]])  # nearest codes 0, 0, 1
+    after = torch.tensor([[[0.6, 0.4], [0.3, 0.8], [-0.6, -0.5]]])  # nearest 0 (0.57 < 0.72), 1, 2
+    got = hold_cells(before, after, codes)
+    assert torch.equal(got, torch.tensor([[[0.6, 0.4], [0.9, 0.2], [-0.1, 0.6]]]))
+    assert torch.equal(hold_cells(before, before, codes), before)
+
+
+def test_hold_cells_in_the_later_passes_only(shipped):
+    """``refiner_hold_cells_from``: a refiner whose shape step throws every slot far along one axis moves slots into
+    other codes' cells in its first pass; held from the second pass, that pass takes no step that leaves a cell (each
+    slot's nearest code is the first pass's), the positions are the unheld model's, and held from the first pass no
+    slot leaves the encoder's cell. Out-of-range values are refused."""
+    from dataclasses import replace
+
+    from prismonet.model.config import ModelConfig
+    from prismonet.model.prismonet import PriSMONet
+    from prismonet.model.refiner_fit import with_refiner
+
+    model, b, _ = shipped
+    base = with_refiner(model, refiner_shape=True)
+    codes = model.prior.latents
+    tex_end = 5 + model.cfg.tex_dim
+    def nearest(z):
+        return torch.cdist(z.reshape(-1, z.shape[-1]), codes).argmin(1)
+
+    got = {}
+    for passes, hold in ((1, None), (2, None), (2, 1), (2, 0)):
+        m = PriSMONet(replace(base.cfg, refine_passes=passes, refiner_hold_cells_from=hold), prior=model.prior)
+        m.load_state_dict(base.state_dict())
+        with torch.no_grad():
+            m.refiner.head[-1].bias[0] = 0.05  # every slot moves in x
+            m.refiner.head[-1].bias[tex_end] = 0.3  # the first shape value: a step that crosses cells
+            got[passes, hold] = m.eval()(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False, refine=True)
+    enc = nearest(base.eval()(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False, refine=False).latents.params.z_sh)
+    one, free, held, held0 = (nearest(got[k].latents.params.z_sh) for k in ((1, None), (2, None), (2, 1), (2, 0)))
+    assert not torch.equal(one, enc) and not torch.equal(free, one)  # the steps cross cells unheld
+    assert torch.equal(held, one) and torch.equal(held0, enc)
+    assert torch.equal(got[2, 1].latents.params.position, got[2, None].latents.params.position)
+    for fields in ({"refine_passes": 2, "refiner_shape": True, "refiner_hold_cells_from": 2},
+                   {"refine_passes": 2, "refiner_hold_cells_from": 1},
+                   {"refine_passes": 2, "refiner_shape": True, "refiner_hold_cells_from": -1}):
+        with pytest.raises(ValueError, match="refiner_hold_cells_from must index"):
+            ModelConfig(**fields)
+
+
 def test_choose_shapes_and_shape_labels_hand_computed():
     """``choose_shapes``: the slot's own latent where logit 0 is the largest, else the code of the largest logit (the
     first on a tie); ``shape_labels``: 0 where the target is the slot's own latent, else 1 + its nearest code."""
@@ -191,6 +240,41 @@ def test_fit_refiner_learns_a_shape_choice(shipped, tmp_path):
     with torch.no_grad():
         z = fitted(b.rgb, b.K, b.T_world_cam, b.ground_z, recolor=False).latents.params.z_sh
     assert torch.equal(z, model.prior.latents[7].expand_as(z))
+
+
+def test_with_shape_step_decodes_as_before_until_trained(clevr3):
+    """``with_shape_step``: a refiner without a shape step gains one; the copy decodes bit for bit as the model (keep
+    logits and all), its head's shape rows are zero and the keep row is the old last row; a raised shape bias then moves
+    every refined slot's shape latent by it, and nothing else moves."""
+    from prismonet.model.refiner_fit import with_shape_step
+
+    model, b, _ = clevr3
+    assert model.cfg.refine_passes and not model.cfg.refiner_shape and model.cfg.refiner_keep
+    new = with_shape_step(model).eval()
+    tex_end, sh = 5 + model.cfg.tex_dim, model.prior.latents.shape[1]
+    w_old, w_new = model.refiner.head[-1].weight, new.refiner.head[-1].weight
+    assert w_new.shape[0] == w_old.shape[0] + sh and not bool(w_new[tex_end:tex_end + sh].any())
+    b_old, b_new = model.refiner.head[-1].bias, new.refiner.head[-1].bias
+    assert torch.equal(w_new[-1], w_old[-1]) and torch.equal(b_new[-1], b_old[-1])
+    with torch.no_grad():
+        a = model.eval()(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        c = new(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        assert torch.equal(a.composite.image, c.composite.image) and torch.equal(a.keep_logit, c.keep_logit)
+        new.refiner.head[-1].bias[tex_end] += 0.25
+        d = new(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=True, recolor=False)
+        e = new(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False, recolor=False)
+        one_old = model.refine_pass(e, b.rgb, b.K, b.T_world_cam, 0).latents.params  # one pass from the same slots
+        one_new = new.refine_pass(e, b.rgb, b.K, b.T_world_cam, 0).latents.params
+    pd, pe = d.latents.params, e.latents.params
+    act = pd.active
+    moved = pd.z_sh - pe.z_sh
+    want = torch.full_like(moved[act][:, 0], 0.25 * model.cfg.refine_passes)
+    assert torch.allclose(moved[act][:, 0], want, atol=1e-5)
+    assert not bool(moved[act][:, 1:].any())
+    assert torch.equal(one_new.position, one_old.position) and torch.equal(one_new.active, one_old.active)
+    assert torch.allclose(one_new.z_sh - one_old.z_sh, torch.tensor(0.25) * (torch.arange(sh) == 0), atol=1e-6)
+    with pytest.raises(ValueError, match="has one already"):
+        with_shape_step(new)
 
 
 def test_refiner_snap_and_keep_bar_in_the_model(shipped):
@@ -1197,6 +1281,7 @@ def test_refiner_command_refuses_shape_codes_without_shape_in_one_line(tmp_path,
     ("clevr1to8_keep", ["--fine-tune", "--keep"], "--fine-tune trains the model's own refiner"),
     ("clevr1to8_keep", ["--fine-tune", "--reanchored", "-1"], "reanchored must be >= 0"),
     ("clevr1to8_keep", ["--fine-tune", "--second-pass", "-1"], "second_pass must be >= 0"),
+    ("shipped", ["--fine-tune", "--shape"], "adds a shape step to a refiner without one: the model has one already"),
 ])
 def test_refiner_command_fine_tune_refusals_in_one_line(model, extra, says, tmp_path, capsys):
     """``prismonet refiner``: a model with a refiner needs ``--fine-tune``, which keeps its refiner settings; a negative

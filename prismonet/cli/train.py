@@ -57,7 +57,7 @@ def cmd_refiner(args) -> int:
     from prismonet.data.dataset import SceneDataset
     from prismonet.evaluation.evaluate import check_compatible
     from prismonet.model.io import load_model
-    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner, with_shape_step
     from prismonet.model.trainer import training_device
 
     device = training_device(args.device)
@@ -73,11 +73,12 @@ def cmd_refiner(args) -> int:
                            reanchored=args.reanchored, second_pass=args.second_pass,
                            second_pass_shape=not args.second_pass_no_shape)  # validate first
     base, info = load_model(args.checkpoint)
-    if args.fine_tune:  # the model's own refiner, trained on
-        if not base.cfg.refine_passes or args.glimpse or args.coords or args.shape or args.shape_codes or args.keep:
-            raise ValueError(f"{args.checkpoint}: --fine-tune trains the model's own refiner (it has {base.cfg.refine_passes} "
-                             "passes); its refiner settings (--glimpse, --coords, --shape, --shape-codes, --keep) stay as they are")
-        model = base
+    if args.fine_tune:  # the model's own refiner, trained on (with --shape: a shape step added to it)
+        if not base.cfg.refine_passes or args.glimpse or args.coords or args.shape_codes or args.keep:
+            raise ValueError(f"{args.checkpoint}: --fine-tune trains the model's own refiner (it has "
+                             f"{base.cfg.refine_passes} passes); its refiner settings (--glimpse, --coords, "
+                             "--shape-codes, --keep) stay as they are")
+        model = with_shape_step(base) if args.shape else base
     elif base.cfg.refine_passes:
         raise ValueError(f"{args.checkpoint}: already has a refiner; start from its encoder's model, or --fine-tune it")
     else:
@@ -189,7 +190,9 @@ def _add_refiner_parser(sub) -> None:
                         "centre, zoomed to the image size (0: the whole image; 0.5 is the measured setting)")
     r.add_argument("--coords", action="store_true", help="the refiner also sees each pixel's image position")
     r.add_argument("--shape", action="store_true",
-                   help="the refiner also corrects each slot's shape latent (fitted to targets that have shapes: --search-shapes)")
+                   help="the refiner also corrects each slot's shape latent (fitted to targets that have shapes: "
+                        "--search-shapes or --shape-trials); with --fine-tune, a shape step added to a refiner "
+                        "without one")
     r.add_argument("--shape-codes", action="store_true",
                    help="with --shape: the refiner chooses each slot's shape among the prior's codes and the slot's own "
                         "latent (cross-entropy on the search's choice) instead of stepping the latent")
@@ -209,7 +212,8 @@ def _add_refiner_parser(sub) -> None:
                         "photo shows them; the targets stay the search's fits to the colour scenes; needs --texture 0 (targets made by "
                         "`distill --gray` set it to 1 and allow a texture weight)")
     r.add_argument("--fine-tune", action="store_true",
-                   help="train the refiner CHECKPOINT already has (its settings and passes kept) instead of a fresh one")
+                   help="train the refiner CHECKPOINT already has (its settings and passes kept; --shape may add a "
+                        "shape step) instead of a fresh one")
     r.add_argument("--reanchored", type=float, default=0.0, metavar="W",
                    help="with --fine-tune on an anchored model with re-anchoring: also fit the refiner on the slots the "
                         "re-anchoring adds, with weight W, against targets `distill` made from CHECKPOINT itself (keep bars "

@@ -108,6 +108,12 @@ class ModelConfig:
     searched at the true poses (``distill --true-poses --search-shapes N``), whose codes are mostly the objects' own:
     its steps can land between codes and draw a shrunken object. On weakly supervised refiners it costs accuracy
     (EVALUATION.md, "Session 65"). The refiner's fit ignores it."""
+    refiner_hold_cells_from: int | None = None
+    """With ``refiner_shape`` (inference; beyond the paper): refinement passes from this index on (0 is the first) step
+    a slot's shape latent only within the cell of the prior training code nearest it before the pass: a slot whose step
+    would make another code the nearest keeps its latent (``refiner.hold_cells``; pose, scale and texture steps as
+    ever). A later pass may then sharpen a shape but not change which of the prior's shapes it draws
+    (EVALUATION.md, "Session 98"). ``None``: off, as fitted. The refiner's fit ignores it."""
     color_step: bool = False
     """A learnt colour step at inference (beyond the paper; ``prismonet.model.color_step``): after the refinement
     passes, one more look at every slot (through the refiner's view: ``refiner_glimpse``, ``refiner_coords``) moves
@@ -179,6 +185,11 @@ class ModelConfig:
             raise ValueError(f"refiner_keep_logit must be a finite number, got {self.refiner_keep_logit}")
         if (self.refiner_snap_shape or self.refiner_keep_logit != 0.0) and not self.refine_passes:
             raise ValueError("refiner_snap_shape and refiner_keep_logit act in the refinement passes: they need refine_passes >= 1")
+        if self.refiner_hold_cells_from is not None and not (
+                0 <= self.refiner_hold_cells_from < self.refine_passes and self.refiner_shape):
+            raise ValueError(f"refiner_hold_cells_from must index a refinement pass (0 to refine_passes - 1 = "
+                             f"{self.refine_passes - 1}) of a refiner that steps shapes (refiner_shape), "
+                             f"got {self.refiner_hold_cells_from}")
         if self.refiner_shape_codes and not (self.refine_passes and self.refiner_shape):
             raise ValueError("refiner_shape_codes chooses the refiner's shapes: it needs refine_passes >= 1 and refiner_shape (refiner --shape)")
         if self.refine_passes < 0 or (self.refine_passes and self.presence):

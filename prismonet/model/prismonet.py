@@ -17,7 +17,8 @@ from prismonet.model.color_step import ColorStep
 from prismonet.model.config import ModelConfig
 from prismonet.model.encoder import ConvEncoder
 from prismonet.model.pose_frame import camera_heading, centre_from_pixel, rotate_about_z
-from prismonet.model.refiner import COORD_CHANNELS, IN_CHANNELS, SlotRefiner, active_rows, apply_correction, on_rows, refiner_inputs, snap_shapes, split_keep
+from prismonet.model.refiner import (COORD_CHANNELS, IN_CHANNELS, SlotRefiner, active_rows, apply_correction,
+                                     hold_cells, on_rows, refiner_inputs, snap_shapes, split_keep)
 from prismonet.model.rescue import rescue_keep
 from prismonet.model.stopping import BoundStop, StopRule
 from prismonet.model.texture import TextureField
@@ -331,7 +332,14 @@ class PriSMONet(nn.Module):
                     index: int = 0) -> ModelOutput:
         """Refinement pass ``index`` (from 0) of ``refine_slots`` on ``out``, with that pass's keep bar: what the
         passes before it hand on is what a later pass sees (``refiner_fit.second_pass_cache``)."""
-        return self._refine_pass(out, image, K, T_world_cam, keep_above=self._keep_bar(index, self.cfg.refiner_keep_logit))
+        return self._refine_pass(out, image, K, T_world_cam, hold=self._holds_cells(index),
+                                 keep_above=self._keep_bar(index, self.cfg.refiner_keep_logit))
+
+    def _holds_cells(self, pass_index: int) -> bool:
+        """Whether refinement pass ``pass_index`` (from 0) keeps each slot's shape in its prior code's cell
+        (``cfg.refiner_hold_cells_from``)."""
+        k = self.cfg.refiner_hold_cells_from
+        return k is not None and pass_index >= k and not self.training
 
     def _keep_bar(self, pass_index: int, bar: float | None) -> float | None:
         """The keep bar of refinement pass ``pass_index`` (from 0): ``bar``, or ``None`` (no slot dropped) after the
@@ -340,10 +348,12 @@ class PriSMONet(nn.Module):
         return bar if n is None or pass_index < n else None
 
     def _refine_pass(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
-                     only: torch.Tensor | None = None, keep_above: float | None = 0.0) -> ModelOutput:
+                     only: torch.Tensor | None = None, keep_above: float | None = 0.0,
+                     hold: bool = False) -> ModelOutput:
         """One refinement pass over the active slots of ``out``, or over the slots ``only (B, N)`` bool alone (the
         others keep their latents and their activity), then a render of every active slot. A slot whose keep logit is
-        not above ``keep_above`` is dropped (``apply_correction``)."""
+        not above ``keep_above`` is dropped (``apply_correction``); with ``hold`` a shape step that leaves the slot's
+        prior code cell is not taken (``hold_cells``)."""
         H, W = image.shape[-2:]
         params = out.latents.params
         delta = self.on_slots(self.refiner, image, out.composite.image, out.composite.instance, out.obj_mask, params, K,
@@ -351,6 +361,8 @@ class PriSMONet(nn.Module):
         subject = params if only is None else replace(params, active=only)
         new = apply_correction(subject, delta, self.pos_scale, self.cfg.scale_range, self.cfg.refiner_keep, keep_above,
                                self.cfg.refiner_turn, self.shape_codes())
+        if hold:
+            new = replace(new, z_sh=hold_cells(params.z_sh, new.z_sh, self.prior.latents))
         if self.cfg.refiner_snap_shape and not self.training:
             new = snap_shapes(new, self.prior.latents)
         if only is not None:
@@ -409,7 +421,8 @@ class PriSMONet(nn.Module):
             return out
         for i in range(self.cfg.refine_passes):
             out = self._refine_pass(out, image, K, T_world_cam, only=added & out.latents.params.active,
-                                    keep_above=self._keep_bar(i, self.cfg.reanchor_keep_logit))
+                                    keep_above=self._keep_bar(i, self.cfg.reanchor_keep_logit),
+                                    hold=self._holds_cells(i))
         return out
 
     @torch.no_grad()

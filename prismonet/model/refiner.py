@@ -181,6 +181,17 @@ def snap_shapes(params: SceneParams, codes: torch.Tensor) -> SceneParams:
     return replace(params, z_sh=codes[nearest].reshape(z.shape))
 
 
+def hold_cells(before: torch.Tensor, after: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """``(..., D_sh)``: ``after`` where the row of ``codes (S, D_sh)`` nearest it (Euclidean) is the one nearest
+    ``before``, else ``before``: a shape step that would make a slot draw nearest another of the prior's shapes is not
+    taken."""
+    codes = codes.to(before)
+    flat = torch.cat([before.reshape(-1, before.shape[-1]), after.reshape(-1, after.shape[-1])])
+    nearest = torch.cdist(flat, codes, compute_mode="donot_use_mm_for_euclid_dist").argmin(1).chunk(2)
+    same = (nearest[0] == nearest[1]).reshape(before.shape[:-1])
+    return torch.where(same[..., None], after, before)
+
+
 def choose_shapes(z_sh: torch.Tensor, logits: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
     """``(..., D_sh)``: per slot the slot's own ``z_sh (..., D_sh)`` where the first of its ``logits (..., 1 + S)`` is the
     largest, else the row of ``codes (S, D_sh)`` (the prior's training codes) of the largest (the first on a tie)."""

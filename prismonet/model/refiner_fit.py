@@ -133,6 +133,29 @@ def with_refiner(model, passes: int = 1, **fields):
     return rebuilt(model, "refiner.", refine_passes=passes, **fields)
 
 
+def with_shape_step(model):
+    """A copy of a model whose refiner has no shape step (``refiner_shape`` off) with one added: every refiner weight as
+    it was, and the head's new shape rows zero, so the copy decodes exactly as ``model`` until it is trained on (a
+    refiner fine-tuned to correct shapes as well, e.g. on shape-trial search targets)."""
+    from prismonet.model.io import rebuilt
+
+    if not model.cfg.refine_passes or model.cfg.refiner_shape:
+        raise ValueError("with_shape_step adds a shape step to a refiner without one: the model has "
+                         + ("no refiner" if not model.cfg.refine_passes else "one already"))
+    new = rebuilt(model, "refiner.head.", refiner_shape=True)
+    last = len(new.refiner.head) - 1
+    old_w, old_b = (model.state_dict()[f"refiner.head.{last}.{k}"] for k in ("weight", "bias"))
+    tex_end, sh = 5 + model.cfg.tex_dim, model.prior.latents.shape[1]
+    with torch.no_grad():
+        for layer_old, layer_new in zip(model.refiner.head[:-1], new.refiner.head[:-1]):
+            layer_new.load_state_dict(layer_old.state_dict())
+        w, b = new.refiner.head[-1].weight, new.refiner.head[-1].bias
+        w.zero_(), b.zero_()
+        w[:tex_end], b[:tex_end] = old_w[:tex_end], old_b[:tex_end]
+        w[tex_end + sh:], b[tex_end + sh:] = old_w[tex_end:], old_b[tex_end:]  # the keep logit, where there is one
+    return new
+
+
 LATENTS = ("z_sh", "z_tex", "position", "cos_sin", "scale")
 
 
