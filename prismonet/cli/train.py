@@ -190,9 +190,8 @@ def _add_refiner_parser(sub) -> None:
                         "centre, zoomed to the image size (0: the whole image; 0.5 is the measured setting)")
     r.add_argument("--coords", action="store_true", help="the refiner also sees each pixel's image position")
     r.add_argument("--shape", action="store_true",
-                   help="the refiner also corrects each slot's shape latent (fitted to targets that have shapes: "
-                        "--search-shapes or --shape-trials); with --fine-tune, a shape step added to a refiner "
-                        "without one")
+                   help="the refiner also corrects each slot's shape latent (targets with shapes: --search-shapes or "
+                        "--shape-trials); with --fine-tune, a shape step added to a refiner without one")
     r.add_argument("--shape-codes", action="store_true",
                    help="with --shape: the refiner chooses each slot's shape among the prior's codes and the slot's own "
                         "latent (cross-entropy on the search's choice) instead of stepping the latent")
