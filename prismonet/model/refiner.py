@@ -171,24 +171,26 @@ def split_keep(delta: torch.Tensor, keep: bool) -> tuple[torch.Tensor, torch.Ten
     return (delta[..., :-1], delta[..., -1]) if keep else (delta, None)
 
 
+def nearest_code(z: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """``(...)`` long: the index of the row of ``codes (S, D_sh)`` nearest each latent of ``z (..., D_sh)``
+    (Euclidean; the first on a tie)."""
+    flat = z.reshape(-1, z.shape[-1])
+    # exact distances, as the search's shape trials take them: cdist's matmul path leaves a code ~1e-4 from itself
+    d = torch.cdist(flat, codes.to(flat), compute_mode="donot_use_mm_for_euclid_dist")
+    return d.argmin(1).reshape(z.shape[:-1])
+
+
 def snap_shapes(params: SceneParams, codes: torch.Tensor) -> SceneParams:
     """``params`` with each slot's shape latent replaced by the nearest row of ``codes (S, D_sh)`` (Euclidean; the
     first on a tie), the prior's training codes: every slot then draws one of the prior's shapes."""
-    z = params.z_sh
-    codes = codes.to(z)
-    # exact distances, as the search's shape trials take them: cdist's matmul path leaves a code ~1e-4 from itself
-    nearest = torch.cdist(z.reshape(-1, z.shape[-1]), codes, compute_mode="donot_use_mm_for_euclid_dist").argmin(1)
-    return replace(params, z_sh=codes[nearest].reshape(z.shape))
+    return replace(params, z_sh=codes.to(params.z_sh)[nearest_code(params.z_sh, codes)])
 
 
 def hold_cells(before: torch.Tensor, after: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
     """``(..., D_sh)``: ``after`` where the row of ``codes (S, D_sh)`` nearest it (Euclidean) is the one nearest
     ``before``, else ``before``: a shape step that would make a slot draw nearest another of the prior's shapes is not
     taken."""
-    codes = codes.to(before)
-    flat = torch.cat([before.reshape(-1, before.shape[-1]), after.reshape(-1, after.shape[-1])])
-    nearest = torch.cdist(flat, codes, compute_mode="donot_use_mm_for_euclid_dist").argmin(1).chunk(2)
-    same = (nearest[0] == nearest[1]).reshape(before.shape[:-1])
+    same = nearest_code(before, codes) == nearest_code(after, codes)
     return torch.where(same[..., None], after, before)
 
 
@@ -206,9 +208,7 @@ def shape_labels(own: torch.Tensor, target: torch.Tensor, codes: torch.Tensor, t
     """``(...)`` long: the class of each target shape ``target (..., D_sh)`` for a refiner with shape codes: 0 where it is
     the slot's ``own`` latent (within ``tol``: the search kept it), else 1 + the index of the nearest of ``codes (S, D)``
     (a search's shape trial sets a code exactly)."""
-    lead = target.shape[:-1]
-    t = target.reshape(-1, target.shape[-1])
-    nearest = torch.cdist(t, codes.to(t), compute_mode="donot_use_mm_for_euclid_dist").argmin(1).reshape(lead)
+    nearest = nearest_code(target, codes)
     kept = (target - own).abs().amax(-1) <= tol
     return torch.where(kept, torch.zeros_like(nearest), nearest + 1)
 

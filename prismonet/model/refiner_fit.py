@@ -142,17 +142,13 @@ def with_shape_step(model):
     if not model.cfg.refine_passes or model.cfg.refiner_shape:
         raise ValueError("with_shape_step adds a shape step to a refiner without one: the model has "
                          + ("no refiner" if not model.cfg.refine_passes else "one already"))
-    new = rebuilt(model, "refiner.head.", refiner_shape=True)
-    last = len(new.refiner.head) - 1
-    old_w, old_b = (model.state_dict()[f"refiner.head.{last}.{k}"] for k in ("weight", "bias"))
+    new = rebuilt(model, f"refiner.head.{len(model.refiner.head) - 1}.", refiner_shape=True)  # a fresh last layer: zero
+    old, fresh = model.refiner.head[-1], new.refiner.head[-1]
     tex_end, sh = 5 + model.cfg.tex_dim, model.prior.latents.shape[1]
     with torch.no_grad():
-        for layer_old, layer_new in zip(model.refiner.head[:-1], new.refiner.head[:-1]):
-            layer_new.load_state_dict(layer_old.state_dict())
-        w, b = new.refiner.head[-1].weight, new.refiner.head[-1].bias
-        w.zero_(), b.zero_()
-        w[:tex_end], b[:tex_end] = old_w[:tex_end], old_b[:tex_end]
-        w[tex_end + sh:], b[tex_end + sh:] = old_w[tex_end:], old_b[tex_end:]  # the keep logit, where there is one
+        for w, w_old in ((fresh.weight, old.weight), (fresh.bias, old.bias)):
+            w[:tex_end] = w_old[:tex_end]
+            w[tex_end + sh:] = w_old[tex_end:]  # the keep logit, where there is one
     return new
 
 
