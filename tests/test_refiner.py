@@ -1293,3 +1293,18 @@ def test_refiner_command_fine_tune_refusals_in_one_line(model, extra, says, tmp_
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("prismonet: error:") and says in err[-1] and "Traceback" not in "\n".join(err)
     assert not out.exists()
+
+
+def test_model_variant_refuses_bad_values_in_one_line(script, tmp_path, capsys):
+    """``scripts/model_variant.py``: an unknown field and a value ``ModelConfig`` refuses each give one line and exit
+    status 2, and no model is written; a good value writes the copy with the field changed."""
+    mv = script("model_variant")
+    out = tmp_path / "variant"
+    for arg, says in (("no_such_field=1", "is not a ModelConfig field"),
+                      ("refiner_hold_cells_from=2", "refiner_hold_cells_from must index")):
+        assert mv.main(["clevr3_sharp", str(out), arg]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("model_variant: error:") and says in err[0]
+        assert not (out / "model.json").exists()
+    assert mv.main(["clevr3_sharp", str(out), "refiner_hold_cells_from=1"]) == 0
+    assert json.loads((out / "model.json").read_text())["model"]["refiner_hold_cells_from"] == 1
