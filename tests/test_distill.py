@@ -133,6 +133,43 @@ def test_fit_targets_resume_lookup_and_settings(tmp_path, monkeypatch):
         fit_targets(model, ds, tmp_path / "u", 3, replace(cfg, reseed=ReseedConfig(rounds=1, grow=1)), progress=False)
 
 
+def test_lanes_fill_one_folder_with_the_chunks_of_one_run(tmp_path, monkeypatch):
+    """``lane=(i, n)``: each lane fits every n-th chunk; two lanes into one folder give the single run's chunks bit for
+    bit, a lane alone leaves the other lane's chunks missing (so ``DistillTargets`` reads the unbroken prefix), and the
+    CLI's 1-based ``--lane I/N`` maps to it and refuses nonsense in one line."""
+    import argparse
+
+    from safetensors.torch import load_file
+
+    from prismonet.cli.train import _lane
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+
+    monkeypatch.setattr(distill, "CHUNK", 1)
+    model, _ = load_model("shipped")
+    ds = SceneDataset(shipped_samples(), split="test")
+    cfg = InferenceConfig(search=SearchConfig(rounds=1), color_fit=ColorFitConfig(steps=2))
+    fit_targets(model, ds, tmp_path / "one", 3, cfg, batch_size=1, progress=False)
+    s = fit_targets(model, ds, tmp_path / "lanes", 3, cfg, batch_size=1, progress=False, lane=(1, 2))
+    made = sorted(p.name for p in (tmp_path / "lanes").glob("chunk_*"))
+    assert s["chunks"] == 1 and made == ["chunk_00001.safetensors"]
+    with pytest.raises(DistillError, match="no finished chunk"):  # chunk 0 missing: no prefix yet
+        DistillTargets(tmp_path / "lanes", num_slots=3)
+    fit_targets(model, ds, tmp_path / "lanes", 3, cfg, batch_size=1, progress=False, lane=(0, 2))
+    for i in range(3):
+        a = load_file(tmp_path / "one" / f"chunk_{i:05d}.safetensors")
+        b = load_file(tmp_path / "lanes" / f"chunk_{i:05d}.safetensors")
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert DistillTargets(tmp_path / "lanes", num_slots=3).count == 3
+    assert not list((tmp_path / "lanes").glob("*.tmp*"))
+    with pytest.raises(DistillError, match="lane"):
+        fit_targets(model, ds, tmp_path / "bad", 3, cfg, progress=False, lane=(2, 2))
+    assert _lane("1/2") == (0, 2) and _lane("2/2") == (1, 2) and _lane("1/1") == (0, 1)
+    for bad in ("0/2", "3/2", "2", "a/b"):
+        with pytest.raises(argparse.ArgumentTypeError, match="I/N"):
+            _lane(bad)
+
+
 def test_training_uses_the_targets(tmp_path, monkeypatch):
     import json
 

@@ -5,6 +5,7 @@ color-step`` (a learnt colour step trained on training images, ``prismonet.model
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 from pathlib import Path
@@ -22,6 +23,17 @@ def cmd_train(args) -> int:
         print(json.dumps(summary))
         print(f"run folder: {args.out}  (model.safetensors + model.json, checkpoint.safetensors, tb/, images/, log.jsonl)")
     return 0
+
+
+def _lane(text: str) -> tuple[int, int]:
+    """``--lane I/N`` (1-based, as a person counts lanes) as ``fit_targets``'s 0-based ``(i, n)``."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected I/N such as 1/2, got {text!r}") from None
+    if not 1 <= i <= n:
+        raise argparse.ArgumentTypeError(f"expected I/N with 1 <= I <= N, got {text!r}")
+    return i - 1, n
 
 
 def cmd_distill(args) -> int:
@@ -47,7 +59,7 @@ def cmd_distill(args) -> int:
 
         ds, meta["gray"] = GrayScenes(ds), True
     s = fit_targets(model, ds, args.out, count, cfg, batch_size=args.batch, progress=not args.quiet, meta=meta,
-                    loss_cfg=training_loss_config(info), true_poses=args.true_poses, device=device)
+                    loss_cfg=training_loss_config(info), true_poses=args.true_poses, device=device, lane=args.lane)
     extra = f"; fit score {s['score_before']:.4f} -> {s['score_after']:.4f} on the chunks made now" if "score_before" in s else ""
     print(f"distillation targets for {s['scenes']} scenes of {args.data} [{args.split}] in {args.out}{extra}")
     return 0
@@ -162,6 +174,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--gray", action="store_true",
                    help="fit the scenes as a greyscale camera shows them (their luminance, depth as it is), so that the "
                         "targets follow the grey decoding's slots: for a refiner of grey photos (`refiner` reads this)")
+    p.add_argument("--lane", type=_lane, default=(0, 1), metavar="I/N",
+                   help="fit only every N-th chunk from the I-th (1 <= I <= N), so that N commands with the same "
+                        "--out, each on one thread (PRISMONET_THREADS=1), fill one folder side by side (default 1/1)")
     p.add_argument("--quiet", action="store_true")
     add_inference_args(p, search=3, fit_color=50)
     p.set_defaults(func=cmd_distill, outputs=[("out", "dir")])
