@@ -6,7 +6,6 @@ test-time steps (which import the training losses)."""
 from __future__ import annotations
 
 import json
-import os
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import torch
 
 from prismonet import threads
+from prismonet.files import write_atomic
 from prismonet.model import distill
 from prismonet.model.distill import FIELDS, DistillError
 
@@ -105,9 +105,7 @@ def fit_targets(model, ds, out_dir: str | Path, count: int, cfg, batch_size: int
             old["search"] = {**json.loads(json.dumps(asdict(SearchConfig(rounds=old["search"].get("rounds", 0))))), **old["search"]}
         if {k: v for k, v in old.items() if k != "count"} != {k: v for k, v in json.loads(json.dumps(info)).items() if k != "count"}:
             raise DistillError(f"{out}: holds targets made with other settings; use a new folder")
-    tmp = info_path.with_suffix(f".json.tmp-{os.getpid()}")  # lanes write the same settings side by side
-    tmp.write_text(json.dumps(info, indent=1))
-    tmp.replace(info_path)
+    write_atomic(info_path, json.dumps(info, indent=1))  # a temporary file per process: lanes write it side by side
     model.to(device).eval()
     before, after = [], []
     chunks = range(0, count, distill.CHUNK)[lane[0]::lane[1]]
