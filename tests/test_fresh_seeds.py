@@ -1,5 +1,5 @@
 """The README's status rows read again on scenes of a seed the project never trained, chose or tested on (opt-in:
-``bash scripts/test.sh -m slow``, about 3 minutes on two threads).
+``bash scripts/test.sh -m slow``, about 4 minutes).
 
 Each test makes its scenes with the README's own data command (``prismonet data clevr|towers ... --seed 20261202``), reads
 them feed-forward with ``prismonet evaluate`` and holds the shipped model to its issue's target where the model meets it
@@ -7,7 +7,7 @@ with room, else to its measured test figure less a sampling margin (about two st
 per line). A model, renderer or generator change that moves these figures fails here even when the 16 sample scenes of the
 default suite still pass.
 
-Measured when written (session 103, 2026-12-02), 1,000 scenes each: see EVALUATION.md, "Session 103".
+Measured when written (session 103, 2026-12-02; 1,000 scenes each, 500 of towers): see EVALUATION.md, "Session 103".
 """
 
 from __future__ import annotations
