@@ -78,9 +78,17 @@ def _checked_outputs(args) -> list[Path]:
 
 
 def _parse(argv: list[str] | None):
-    """``(args, None)``, or ``(None, exit status)`` for ``--help`` (0) and a bad argument (2, one line printed)."""
+    """``(args, None)``, or ``(None, exit status)`` for ``--help`` (0) and a bad argument (2, one line printed).
+
+    A command with ``--preset NAME`` (its sub-parser's defaults hold ``preset_parser`` and ``presets``) is parsed twice:
+    the preset's values become that sub-parser's defaults, so the flags given on the command line still win."""
     try:
-        return build_parser().parse_args(argv), None
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if getattr(args, "preset", None):
+            args.preset_parser.set_defaults(**args.presets[args.preset])
+            args = parser.parse_args(argv)
+        return args, None
     except SystemExit as e:
         return None, e.code if isinstance(e.code, int) else 2
 

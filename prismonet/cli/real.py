@@ -8,6 +8,25 @@ import sys
 
 from prismonet.cli.common import add_inference_args, check_finite_positive, floats, inference_config, ints
 
+PRESETS = {
+    "measured": {"tiles": 2, "tile_below": 120.0, "normalize": "flat", "gray_tint": "both", "gray_no_steps": True,
+                 "reseed": 4, "reseed_replace": True, "reseed_cycles": 2, "search": 3, "fit_color": 50,
+                 "search_scales": "0.8,0.9,1.1,1.25", "prune": True},
+}
+"""``real reconstruct|evaluate --preset NAME``: flag values set as one. ``measured`` is the photo setting every figure of
+the labelled photos since session 86 was read with (EVALUATION.md): ``--tiles 2 --tile-below 120 --normalize flat
+--gray-tint both --gray-no-steps --reseed 4 --reseed-replace --reseed-cycles 2 --search 3 --fit-color 50
+--search-scales 0.8,0.9,1.1,1.25 --prune``."""
+
+
+def preset_flags(name: str) -> str:
+    """A preset as the command-line flags it stands for."""
+    flags = []
+    for dest, v in PRESETS[name].items():
+        flag = "--" + dest.replace("_", "-")
+        flags.append(flag if v is True else f"{flag} {v:g}" if isinstance(v, float) else f"{flag} {v}")
+    return " ".join(flags)
+
 
 def box_and_gain(args):
     """``--box x0,y0,w,h`` and ``--gain r,g,b``, checked (the gain goes with ``--normalize manual``)."""
@@ -129,9 +148,10 @@ def _gray_inference(args):
 
 
 def _gray_note(args) -> str:
+    preset = f"; preset {args.preset}" if args.preset else ""
     if args.gray_tint == "off":
-        return ""
-    return f"; greyscale photos tinted ({args.gray_tint})" + (" and read by the encoder alone" if args.gray_no_steps else "")
+        return preset
+    return f"{preset}; greyscale photos tinted ({args.gray_tint})" + (" and read by the encoder alone" if args.gray_no_steps else "")
 
 
 def _percentile(text: str) -> float | None:
@@ -253,4 +273,9 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
                         "PX visible pixels of the model's view (a view Z times as wide, the rest filled with the colour of the view's "
                         "border): close-ups whose objects are larger than the model was trained on (measured, not chosen: "
                         "EVALUATION.md, session 86)")
+    p.add_argument("--preset", choices=sorted(PRESETS),
+                   help="set many flags at once; a flag given on the command line still wins (but one the preset switches on "
+                        "stays on). measured: the setting of the labelled photos' figures (EVALUATION.md, session 86): "
+                        + preset_flags("measured"))
+    p.set_defaults(preset_parser=p, presets=PRESETS)
     p.add_argument("--quiet", action="store_true")
