@@ -24,7 +24,7 @@ def test_without_color_step_is_the_model_before_it(shipped, plain):
     model, b, out = shipped
     base, _, before = plain
     assert model.cfg.color_step and not base.cfg.color_step and not hasattr(base, "color_step")
-    assert model.cfg.color_step_passes == 2 and base.cfg.color_step_passes == 1  # the default's step looks twice
+    assert model.cfg.color_step_passes == 3 and base.cfg.color_step_passes == 1  # the default's step looks three times
     for name in ("z_sh", "position", "cos_sin", "scale"):
         assert torch.equal(getattr(out.latents.params, name), getattr(before.latents.params, name))
     assert torch.equal(out.composite.instance, before.composite.instance)

@@ -100,6 +100,8 @@ def test_real_evaluate_on_the_shipped_photos(tmp_path, capsys):
     assert len(r["photos"]) == 5 and 0 <= r["overall"]["box_AP0.5"] <= 1 and 0 <= r["overall"]["foreground_IoU"] <= 1
     assert all(Path(p["figure"]).is_file() for p in r["photos"])
     assert {p["model"] for p in r["photos"]} == {"tabletop_keep"} and "(model tabletop_keep;" in table  # the photo default
+    settings = json.loads((tmp_path / "e" / "settings.json").read_text())
+    assert settings["model"] == "tabletop_keep" and settings["flags"]["labels"] == str(LABELS) and settings["preset"] is None
     within = sum(abs(p["objects_found"] - p["true_in_view"]) <= 2 for p in r["photos"])
     assert r["overall"]["count_within_slack"] == within and f"within ±2 of the objects in view on {within} of 5 photos" in table
 

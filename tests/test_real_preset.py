@@ -1,6 +1,8 @@
 """``real reconstruct|evaluate --preset``: a preset parses to exactly the flags it stands for, and flags given on the
 command line win over it."""
 
+import json
+
 import pytest
 
 from prismonet.cli import _parse
@@ -45,3 +47,16 @@ def test_unknown_preset_is_one_line(capsys):
     assert args is None and status == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--preset" in err[0] and "measured" in err[0]
+
+
+def test_settings_record_the_flags_a_preset_stood_for(tmp_path):
+    """``settings.json`` of a photo run: the preset's flags written out, the model's resolved name, the steps."""
+    from prismonet.cli.common import inference_config
+    from prismonet.cli.real import run_settings, write_settings
+
+    args, _ = _parse(["real", "evaluate", "labels", "--out", str(tmp_path), "--preset", "measured", "--search", "2"])
+    s = run_settings(args, inference_config(args, has_depth=False))
+    assert s["command"] == "prismonet real evaluate" and s["preset"] == "measured" and s["model"] == "tabletop_keep"
+    assert s["flags"]["search"] == 2 and s["flags"]["tiles"] == 2 and s["flags"]["prune"] is True
+    assert not IGNORED & set(s["flags"]) and "quiet" not in s["flags"]
+    assert json.loads(write_settings(args, inference_config(args, has_depth=False)).read_text())["flags"] == s["flags"]

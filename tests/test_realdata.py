@@ -307,6 +307,7 @@ def test_real_reconstruct_runs_end_to_end_on_the_shipped_photos(tmp_path, capsys
     summary = {Path(r["photo"]).name: r for r in json.loads((tmp_path / "summary.json").read_text())}
     assert set(summary) == {"blox.jpg", "coffee.jpg", "coins.png", "smarties.png", "stuff.jpg"}
     assert {r["model"] for r in summary.values()} == {PHOTO_NAME} and PHOTO_NAME == "tabletop_keep"
+    assert json.loads((tmp_path / "settings.json").read_text())["flags"]["photos"] == photos
     assert summary["blox.jpg"]["objects_found"] >= 1
     for r in summary.values():
         assert r["finite"]

@@ -30,16 +30,16 @@ batch 32 gave PSNR 26.55 but 1.02M images in all) (``clevr3_color_step_log.jsonl
 allObj (0.917 against 0.929) and the count; above it on PSNR (26.52 against 25.90) and mAP."""
 SHARP_MODEL = "clevr3_sharp_model"
 """The 3-object model that draws cubes as cubes feed-forward (session 89; refitted on 1.5x the targets in session 91;
-its colour step two passes since session 92), every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session
+its colour step three passes since session 104, two since 92), every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session
 92. ``clevr3_fc`` with a keep refiner that also corrects each slot's shape latent (``--keep --shape``), fitted for 9,000
 steps to 20,736 training scenes of targets from the demo's search with shape trials (``prismonet distill clevr3_fc ...
 --shape-trials --search-grid 24`` on ``data/clevr3`` joined with 12,288 seed-7 scenes, ``prismonet data join``;
-``clevr3_sharp_fit_log.jsonl``), applied twice, then a colour step that looks twice (``color-step --passes 2``: 1,500
-steps of batch 24 on 8,192 training images, ``clevr3_sharp_step_log.jsonl``); the whole route is
-``scripts/sharp_refit.sh``, 996K images seen. Test, feed-forward: AP0.5 0.987 (unfiltered too), AR0.5 0.977, allObj
-0.939, mAP 0.754, PSNR 26.52 (26.47 with session 91's one-pass step), 77 % of cubes drawn as cubes: every feed-forward
-target of issue 25 in one model that draws cubes; above ``clevr3`` on all of these, 0.7 points below on the count
-(EVALUATION.md, sessions 91-92)."""
+``clevr3_sharp_fit_log.jsonl``), applied twice, then a colour step that looks three times (``color-step --passes 3``:
+1,500 steps of batch 24 on 24,576 seed-7 training images, ``clevr3_sharp_step_log.jsonl``); the whole route is
+``scripts/sharp_refit.sh``, 996K images seen. Test, feed-forward: AP0.5 0.988 (0.987 unfiltered), AR0.5 0.977, allObj
+0.939, mAP 0.754, PSNR 26.57 (26.52 with session 92's two-pass step, 26.47 with session 91's one-pass step), 77 % of
+cubes drawn as cubes: every feed-forward target of issue 25 in one model that draws cubes; above ``clevr3`` on all of
+these, 0.7 points below on the count (EVALUATION.md, sessions 91-92 and 104-105)."""
 DEFAULT_NAME, DEFAULT_MODEL = "clevr3_sharp", SHARP_MODEL
 """The name and stem that ``"shipped"`` names: the default model of every command (``clevr3_sharp`` since session 92;
 ``clevr3`` in sessions 56-91). Names like ``"shipped"`` move when a new model ships: a run records the weights'

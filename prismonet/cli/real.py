@@ -4,7 +4,9 @@ colour-normalise), and reconstruct them (figure, latent scene, mesh and object c
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
 from prismonet.cli.common import add_inference_args, check_finite_positive, floats, inference_config, ints
 
@@ -105,8 +107,9 @@ def cmd_reconstruct(args) -> int:
                 x, y, z = obj["position_table_m"]
                 print(f"      object {obj['slot']}: at ({x:.3f}, {y:.3f}, {z:.3f}) m on the table, half-size {obj['scale_m']:.3f} m")
     _warn(recs)
-    print(f"wrote figures, latent scenes, meshes and summary.json to {args.out} (model {_name(args)}; {cfg.describe()}"
-          f"{_gray_note(args)})")
+    write_settings(args, cfg)
+    print(f"wrote figures, latent scenes, meshes, summary.json and settings.json to {args.out} (model {_name(args)}; "
+          f"{cfg.describe()}{_gray_note(args)})")
     return 0
 
 
@@ -123,11 +126,34 @@ def cmd_evaluate(args) -> int:
                              args.min_pixels, inference=cfg, progress=not args.quiet, metres_per_unit=args.unit,
                              elevation=args.elevation, label_elevations=args.label_elevations, tiling=_tiling(args),
                              highlights=args.highlights, gray_tint=args.gray_tint, gray_inference=_gray_inference(args))
+    write_settings(args, cfg)
     print(format_real_table(result))
     print(f"(model {_name(args)}; {cfg.describe()}{_gray_note(args)}; boxes from the model's instance masks mapped "
           "back to the photos; "
-          f"figures and {args.out}/real_evaluation.json)")
+          f"figures, {args.out}/real_evaluation.json and settings.json)")
     return 0
+
+
+NOT_SETTINGS = ("func", "outputs", "preset_parser", "presets", "quiet", "command", "real_command", "preset")
+"""Parsed values ``settings.json`` leaves out of its ``flags``: the parser's plumbing, what only changes the terminal
+output, and what it records on their own (the command, the preset)."""
+
+
+def run_settings(args, cfg) -> dict:
+    """What a photo run was asked: its command, the model's resolved name, the test-time steps, and every flag's value
+    after the preset was applied (so a ``--preset`` run records the flags it stood for)."""
+    flags = {k: v for k, v in vars(args).items() if k not in NOT_SETTINGS}
+    return {"command": f"prismonet real {args.real_command}", "model": _name(args), "inference": cfg.describe(),
+            "preset": args.preset, "flags": flags}
+
+
+def write_settings(args, cfg) -> Path:
+    """``run_settings`` as ``OUT/settings.json`` (written when the run has finished, atomically)."""
+    from prismonet.files import write_atomic
+
+    dest = Path(args.out) / "settings.json"
+    write_atomic(dest, json.dumps(run_settings(args, cfg), indent=1, default=str))
+    return dest
 
 
 def _name(args) -> str:
