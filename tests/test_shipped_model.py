@@ -166,23 +166,23 @@ def test_rotation_error_up_to_each_shapes_own_symmetry(results):
 
 
 def test_the_colour_step_model_loads_and_its_step_lifts_the_image_only(results):
-    """``clevr3_color`` (session 57; its colour step refitted at batch 24 in session 58): on the 16 scenes AP0.5 1.000
-    and PSNR 25.98; with its colour step off (the same geometry) every detection and depth measure is the same, and
-    PSNR is 25.43."""
+    """``clevr3_color`` (session 57; its colour step refitted at batch 24 in session 58, three passes on 24,576 images in
+    session 105): on the 16 scenes AP0.5 1.000 and PSNR 26.08 (25.98 with session 58's step); with its colour step off
+    (the same geometry) every detection and depth measure is the same, and PSNR is 25.43."""
     import copy
     from dataclasses import replace
 
     model, info = load_model("clevr3_color")
     assert model.cfg.color_step and model.cfg.refine_passes == 2 and model.cfg.refiner_keep
-    assert info["refiner_fit"]["target_scenes"] == 20736 and info["color_step_fit"]["scenes"] == 8192
+    assert info["refiner_fit"]["target_scenes"] == 20736 and info["color_step_fit"]["scenes"] == 24576
     off = copy.deepcopy(model)
-    off.cfg = replace(off.cfg, color_step=False)
+    off.cfg = replace(off.cfg, color_step=False, color_step_passes=1)
     ds = SceneDataset(shipped_samples(), split="test")
     on, plain = (evaluate_model(m, ds, batch_size=16, progress=False) for m in (model, off))
-    assert on["AP0.5"] >= 1.0 - AP_MARGIN and on["PSNR"] >= 25.98 - PSNR_MARGIN
+    assert on["AP0.5"] >= 1.0 - AP_MARGIN and on["PSNR"] >= 26.08 - PSNR_MARGIN
     for k in ("AP0.5", "AR0.5", "mAP", "allObj", "depth_RMSE", "ARI", "count_exact"):
         assert on[k] == plain[k], k
-    assert on["PSNR"] > plain["PSNR"] + 0.4  # measured: +0.55 dB
+    assert on["PSNR"] > plain["PSNR"] + 0.4  # measured: +0.65 dB (session 58's step: +0.55)
 
 
 def test_the_default_draws_cubes_as_cubes_feed_forward(results):

@@ -25,9 +25,9 @@ COLOR_MODEL = "clevr3_color_model"
 meets every feed-forward target of issue 25 (test: AP0.5 0.977 unfiltered, AR0.5 0.968, allObj 0.917, PSNR 26.52,
 996K images seen). ``clevr3_fc`` with the keep refiner fitted to 20,736 targets for 9,000 steps
 (``clevr3_color_fit_log.jsonl``), applied twice, then a colour step (``model.color_step``, ``prismonet color-step``)
-trained photometrically on 8,192 training images, 1,500 steps of batch 24 (session 58; session 57's 2,000 steps of
-batch 32 gave PSNR 26.55 but 1.02M images in all) (``clevr3_color_step_log.jsonl``). Not the default: below it on
-allObj (0.917 against 0.929) and the count; above it on PSNR (26.52 against 25.90) and mAP."""
+trained photometrically, 1,500 steps of batch 24 (session 58, on 8,192 training images: PSNR 26.52; since session 105
+three passes on 24,576 seed-7 images: test PSNR 26.59, the same 996K images seen) (``clevr3_color_step_log.jsonl``).
+Not the default: below it on allObj (0.917 against 0.939) and the count."""
 SHARP_MODEL = "clevr3_sharp_model"
 """The 3-object model that draws cubes as cubes feed-forward (session 89; refitted on 1.5x the targets in session 91;
 its colour step three passes since session 104, two since 92), every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session
