@@ -14,6 +14,10 @@ set -e
 out=$1; count=${2:-9000}; steps=${3:-6000}; data=${4:-data/clevr3}
 if [ -z "$out" ]; then echo "usage: bash scripts/sharp_refit.sh OUT [COUNT] [STEPS] [DATA] [STEP_DATA]" >&2; exit 2; fi
 data=$(cd "$data" 2>/dev/null && pwd -P) || { echo "sharp_refit: $data is missing (prismonet data clevr --objects 3 --out data/clevr3)" >&2; exit 2; }
+if [ -n "$5" ]; then   # the colour step's images, checked before any work
+  step=$(cd "$5" 2>/dev/null && pwd -P) || { echo "sharp_refit: $5 is missing" >&2; exit 2; }
+  step_data=("$step")
+else step_data=("$data" --count 8192); fi
 out=$(mkdir -p "$out" && cd "$out" && pwd -P)   # absolute, as the runs record their inputs: a rerun from elsewhere still resumes
 export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
 p() { python3 -m prismonet "$@"; }
@@ -25,7 +29,6 @@ p refiner clevr3_fc "$data" --targets "$out/distill_c3_table" --out "$out/c3_tab
 [ -f "$out/c3_table_fit_2p/model.json" ] || python3 scripts/set_refine_passes.py "$out/c3_table_fit" 2 "$out/c3_table_fit_2p"
 once "$out/eval_fit_2p_val.txt" p evaluate "$out/c3_table_fit_2p" "$data" --split val --limit 1000 --batch 64
 once "$out/codes_fit_2p_val.txt" python3 scripts/shape_codes.py "$out/c3_table_fit_2p" "$data" --split val --limit 400
-if [ -n "$5" ]; then step_data=("$5"); else step_data=("$data" --count 8192); fi
 p color-step "$out/c3_table_fit_2p" "${step_data[@]}" --out "$out/c3_table_fit_cs" --steps 1500 --batch 24 --passes 3 --quiet
 once "$out/eval_fit_cs_val.txt" p evaluate "$out/c3_table_fit_cs" "$data" --split val --limit 1000 --batch 64
 echo "sharp_refit: done ($out)"

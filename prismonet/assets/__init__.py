@@ -30,7 +30,7 @@ three passes on 24,576 seed-7 images: test PSNR 26.59, the same 996K images seen
 Not the default: below it on allObj (0.917 against 0.939) and the count."""
 SHARP_MODEL = "clevr3_sharp_model"
 """The 3-object model that draws cubes as cubes feed-forward (session 89; refitted on 1.5x the targets in session 91;
-its colour step three passes since session 104, two since 92), every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session
+its colour step three passes since session 105, two since 92), every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session
 92. ``clevr3_fc`` with a keep refiner that also corrects each slot's shape latent (``--keep --shape``), fitted for 9,000
 steps to 20,736 training scenes of targets from the demo's search with shape trials (``prismonet distill clevr3_fc ...
 --shape-trials --search-grid 24`` on ``data/clevr3`` joined with 12,288 seed-7 scenes, ``prismonet data join``;
