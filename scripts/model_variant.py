@@ -1,11 +1,14 @@
 """A copy of a model with some of its ``model.json`` (``ModelConfig``) fields changed: inference settings tried
 without training, e.g. more samples per ray.
 
-    python3 scripts/model_variant.py MODEL OUT FIELD=JSON [FIELD=JSON ...]
+    python3 scripts/model_variant.py [--shared] MODEL OUT FIELD=JSON [FIELD=JSON ...]
     python3 scripts/model_variant.py chairs_refiner runs/chairs_s48 render_samples=48
+    python3 scripts/model_variant.py --shared clevr3_sharp runs/s106/S_4 num_slots=4
 
 MODEL is a shipped name or a run folder; OUT gets ``model.json`` and ``model.safetensors`` (the weights unchanged),
-which ``prismonet evaluate OUT ...`` reads.
+which ``prismonet evaluate OUT ...`` reads. With ``--shared`` (MODEL a shipped name) OUT gets ``model.json`` alone, which
+names MODEL's weights file and its SHA-256 (``"weights_of"``, ``prismonet.model.io.weights_file``): how a model that is
+a shipped one with other settings ships without a second copy of the weights (``clevr2``, ``clevr4``, ``clevr5``).
 """
 
 from __future__ import annotations
@@ -19,14 +22,19 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    shared = "--shared" in argv
+    argv = [a for a in argv if a != "--shared"]
     if len(argv) < 3 or any("=" not in a for a in argv[2:]):
-        print("model_variant: usage: model_variant.py MODEL OUT FIELD=JSON [FIELD=JSON ...]", file=sys.stderr)
+        print("model_variant: usage: model_variant.py [--shared] MODEL OUT FIELD=JSON [FIELD=JSON ...]", file=sys.stderr)
         return 2
     from prismonet.assets import named_model
     from prismonet.config import _build
     from prismonet.model.config import ModelConfig
 
     p = named_model(argv[0]) or Path(argv[0])
+    if shared and named_model(argv[0]) is None:
+        print(f"model_variant: error: --shared needs a shipped model's name, got {argv[0]!r}", file=sys.stderr)
+        return 2
     stem = p / "model" if p.is_dir() else p.with_suffix("")
     if not stem.with_suffix(".json").is_file():
         print(f"model_variant: error: {stem.with_suffix('.json')}: no such model", file=sys.stderr)
@@ -45,10 +53,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"model_variant: error: {e}", file=sys.stderr)
         return 2
     from prismonet.files import write_atomic
+    from prismonet.model.io import CheckpointError, weights_file
 
+    try:
+        weights = weights_file(stem, info)  # a model that ships as JSON alone: the weights it names
+    except CheckpointError as e:
+        print(f"model_variant: error: {e}", file=sys.stderr)
+        return 2
     out = Path(argv[1])
     out.mkdir(parents=True, exist_ok=True)
-    shutil.copy(stem.with_suffix(".safetensors"), out / "model.safetensors")
+    info.pop("weights_of", None)
+    if shared:
+        from prismonet.assets import model_name
+        from prismonet.model.io import file_sha256
+
+        info["weights_of"] = {"model": model_name(argv[0]), "sha256": file_sha256(weights)}
+    else:
+        shutil.copy(weights, out / "model.safetensors")
     write_atomic(out / "model.json", json.dumps(info, indent=1))  # last: a copy cut short has no model.json
     print(f"wrote {out} ({', '.join(argv[2:])})")
     return 0

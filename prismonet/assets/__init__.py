@@ -93,6 +93,8 @@ MODELS = {
     "clevr3_60k": PREVIOUS_MODEL,
     "clevr3_seek": SEEK_MODEL,
     "clevr3_distilled": DISTILLED_MODEL,
+    # clevr2, clevr4, clevr5: since session 106 the default (clevr3_sharp) decoded with 2, 4 and 5 slots; each ships as
+    # a model file alone that names the default's weights and their SHA-256 ("weights_of", prismonet.model.io.weights_file)
     "clevr2": "clevr2_model",
     "clevr4": "clevr4_model",
     "clevr5": "clevr5_model",

@@ -43,6 +43,38 @@ def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
     return stem.with_suffix(".safetensors"), stem.with_suffix(".json")
 
 
+def file_sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def weights_file(stem: Path, info: dict) -> Path:
+    """The ``.safetensors`` that holds a model's weights: its own, or, for a model file that names
+    ``"weights_of": {"model": NAME, "sha256": HEX}``, the shipped model ``NAME``'s, checked byte for byte (a model that
+    is another one's weights with other settings, e.g. the default with more slots, ships as a JSON file alone)."""
+    ref = info.get("weights_of")
+    if ref is None:
+        return stem.with_suffix(".safetensors")
+    from prismonet.assets import named_model
+
+    try:
+        base, sha = named_model(str(ref["model"])), str(ref["sha256"])
+    except (KeyError, TypeError):
+        raise CheckpointError(f"{stem}.json: 'weights_of' must name a shipped model and its sha256, got {ref!r}") from None
+    if base is None:
+        raise CheckpointError(f"{stem}.json: takes the weights of {ref['model']!r}, which is not installed")
+    path = base.with_suffix(".safetensors")
+    if not path.is_file() or file_sha256(path) != sha:
+        raise CheckpointError(f"{stem}.json: takes the weights of {ref['model']!r}, but {path.name} is not the file it was "
+                              f"measured with (sha256 {sha[:12]}...): that model was shipped again")
+    return path
+
+
 def load_model(path: str | Path, num_slots: int | None = None):
     """Load ``(model, info)`` from a run folder, a ``.safetensors``/``.json`` path, a stem, or the name
     of a model that ships with the package (``prismonet.assets.MODELS``; ``"shipped"`` is the
@@ -71,10 +103,11 @@ def load_model(path: str | Path, num_slots: int | None = None):
     if info.get("prior_fingerprint") != prior_fingerprint(model.prior):
         raise CheckpointError(f"{config}: trained with another shape prior (fingerprint {info.get('prior_fingerprint')})")
     try:
-        tensors, _ = load_checkpoint(stem.with_suffix(".safetensors"))
+        weights = weights_file(stem, info)
+        tensors, _ = load_checkpoint(weights)
     except (FileNotFoundError, ValueError) as e:
         raise CheckpointError(str(e)) from None
-    load_fitting(model, tensors, f"{stem}.safetensors")
+    load_fitting(model, tensors, str(weights))
     model.eval()
     return model, info
 
