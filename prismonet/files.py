@@ -16,6 +16,7 @@ with one line that names the path or the setting, which the command line prints 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -196,3 +197,12 @@ def write_atomic(path, data: bytes | str) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return p
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 24) -> str:
+    """The SHA-256 of a file's bytes, read in ``chunk``-byte blocks (packed datasets' manifests, shared model weights)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()

@@ -31,8 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     from prismonet.config import _build
     from prismonet.model.config import ModelConfig
 
-    p = named_model(argv[0]) or Path(argv[0])
-    if shared and named_model(argv[0]) is None:
+    named = named_model(argv[0])
+    p = named or Path(argv[0])
+    if shared and named is None:
         print(f"model_variant: error: --shared needs a shipped model's name, got {argv[0]!r}", file=sys.stderr)
         return 2
     stem = p / "model" if p.is_dir() else p.with_suffix("")
@@ -65,9 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     info.pop("weights_of", None)
     if shared:
         from prismonet.assets import model_name
-        from prismonet.model.io import file_sha256
+        from prismonet.files import sha256_file
 
-        info["weights_of"] = {"model": model_name(argv[0]), "sha256": file_sha256(weights)}
+        info["weights_of"] = {"model": model_name(argv[0]), "sha256": sha256_file(weights)}
     else:
         shutil.copy(weights, out / "model.safetensors")
     write_atomic(out / "model.json", json.dumps(info, indent=1))  # last: a copy cut short has no model.json

@@ -17,7 +17,6 @@ file's presence, header and size (cheap; catches truncation); ``verify=True`` al
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -25,18 +24,10 @@ import numpy as np
 
 from prismonet.data.errors import DatasetError
 from prismonet.data.scenes import SCENE_ARRAYS
+from prismonet.files import sha256_file
 
 PACKED_FORMAT = "prismonet-packed"
 PACKED_VERSION = 1
-HASH_CHUNK = 1 << 24
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(HASH_CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def write_split(split_dir: Path, arrays: dict[str, np.ndarray]) -> dict[str, dict]:
@@ -50,7 +41,7 @@ def write_split(split_dir: Path, arrays: dict[str, np.ndarray]) -> dict[str, dic
             "shape": list(arrays[name].shape),
             "dtype": str(arrays[name].dtype),
             "bytes": path.stat().st_size,
-            "sha256": _sha256(path),
+            "sha256": sha256_file(path),
         }
     return entries
 
@@ -96,7 +87,7 @@ def open_split(root: Path, split: str, verify: bool = False) -> dict[str, np.nda
         size = path.stat().st_size
         if size != entry["bytes"]:
             raise DatasetError(f"{path}: truncated or altered: {size} bytes, expected {entry['bytes']}")
-        if verify and _sha256(path) != entry["sha256"]:
+        if verify and sha256_file(path) != entry["sha256"]:
             raise DatasetError(f"{path}: corrupted: SHA-256 does not match meta.json")
         try:
             arr = np.load(path, mmap_mode="r", allow_pickle=False)

@@ -43,16 +43,6 @@ def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
     return stem.with_suffix(".safetensors"), stem.with_suffix(".json")
 
 
-def file_sha256(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def weights_file(stem: Path, info: dict) -> Path:
     """The ``.safetensors`` that holds a model's weights: its own, or, for a model file that names
     ``"weights_of": {"model": NAME, "sha256": HEX}``, the shipped model ``NAME``'s, checked byte for byte (a model that
@@ -61,6 +51,7 @@ def weights_file(stem: Path, info: dict) -> Path:
     if ref is None:
         return stem.with_suffix(".safetensors")
     from prismonet.assets import named_model
+    from prismonet.files import sha256_file
 
     try:
         base, sha = named_model(str(ref["model"])), str(ref["sha256"])
@@ -69,7 +60,7 @@ def weights_file(stem: Path, info: dict) -> Path:
     if base is None:
         raise CheckpointError(f"{stem}.json: takes the weights of {ref['model']!r}, which is not installed")
     path = base.with_suffix(".safetensors")
-    if not path.is_file() or file_sha256(path) != sha:
+    if not path.is_file() or sha256_file(path) != sha:
         raise CheckpointError(f"{stem}.json: takes the weights of {ref['model']!r}, but {path.name} is not the file it was "
                               f"measured with (sha256 {sha[:12]}...): that model was shipped again")
     return path
