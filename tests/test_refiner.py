@@ -556,6 +556,63 @@ def test_fit_refiner_learns_a_known_correction_and_resumes(clevr3, tmp_path):
     assert float(moved[..., 0].mean()) > 0.1
 
 
+def test_fit_refiner_keep_best_saves_the_held_out_minimum(clevr3, tmp_path):
+    """Training scenes' targets 0.2 to one side, the held-out scenes' 0.2 to the other: the more the refiner learns, the
+    worse it does on the held-out scenes, so with ``keep_best`` the saved refiner is the one it started from (a fresh
+    refiner moves no slot), at step 0, while without it the saved refiner moves the slots; a rerun keeps the choice."""
+    from prismonet.assets import shipped_samples
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.refiner_fit import RefinerFitConfig, fit_refiner, with_refiner
+
+    model = clevr3[0]
+    ds = SceneDataset(shipped_samples(), split="test")
+    _shifted_targets(model, ds, tmp_path / "t", 12, [[[0.2, 0.0, 0.0]]] * 8 + [[[-0.2, 0.0, 0.0]]] * 4)
+    cfg = RefinerFitConfig(steps=30, batch_size=8, lr=2e-3, holdout=4, checkpoint_every=10, keep_best=True)
+    b = ds.batch([0, 1])
+
+    def moved(run) -> float:
+        loaded, info = load_model(run)
+        with torch.no_grad():
+            p = loaded(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params.position
+            q = loaded(b.rgb, b.K, b.T_world_cam, b.ground_z, refine=False).latents.params.position
+        return float((p - q)[..., 0].mean()), info["refiner_fit"]
+
+    s = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "best", cfg, progress=False)
+    assert s["held_out_start"] == pytest.approx(0.2, abs=1e-4) and s["held_out_end"] > s["held_out_start"] + 0.02
+    assert s["best_step"] == 0 and s["held_out_best"] == s["held_out_start"]
+    shift, record = moved(tmp_path / "best")
+    assert shift == 0.0 and record["best"] == {"step": 0, "held_out": s["held_out_start"]}
+    last = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "last",
+                       RefinerFitConfig(**{**cfg.__dict__, "keep_best": False}), progress=False)
+    assert last["held_out_end"] > last["held_out_start"] + 0.02 and "best_step" not in last
+    assert moved(tmp_path / "last")[0] > 0.05
+    again = fit_refiner(with_refiner(model, refiner_keep=False), ds, tmp_path / "t", tmp_path / "best", cfg, progress=False)
+    assert again["best_step"] == 0 and moved(tmp_path / "best")[0] == 0.0
+
+
+def test_best_held_out_keeps_the_lowest_and_resumes(tmp_path):
+    from prismonet.model.distill import DistillError
+    from prismonet.model.part_fit import BestHeldOut
+
+    lin = torch.nn.Linear(2, 1)
+    best = BestHeldOut(tmp_path / "best.safetensors", "p.", {"a": 1}, DistillError)
+    kept = None
+    for step, loss in [(0, 0.5), (10, 0.4), (20, 0.4), (30, 0.45)]:
+        with torch.no_grad():
+            lin.weight.fill_(float(step))
+        best.offer(step, loss, lin)
+        kept = lin.weight.clone() if step == 10 else kept
+    assert (best.step, best.loss) == (10, 0.4)  # a tie keeps the earlier
+    again = BestHeldOut(tmp_path / "best.safetensors", "p.", {"a": 1}, DistillError)
+    assert (again.step, again.loss) == (10, 0.4)
+    again.offer(40, 0.42, lin)
+    again.restore(lin)
+    assert torch.equal(lin.weight, kept)
+    with pytest.raises(DistillError, match="other settings"):
+        BestHeldOut(tmp_path / "best.safetensors", "p.", {"a": 2}, DistillError)
+
+
 def test_fit_refiner_rerun_when_finished_makes_no_cache(clevr3, tmp_path, monkeypatch):
     """Rerunning a finished fit (as a resumable script does) takes no step and decodes no scene: it saves the same model
     and returns the logged held-out losses."""

@@ -83,7 +83,7 @@ def cmd_refiner(args) -> int:
                            texture=args.texture, color=args.color, true_poses=args.true_poses, fill_hidden=args.fill_hidden,
                            recolor=args.recolor, gray_share=1.0 if gray else args.gray_share, gray_targets=gray,
                            reanchored=args.reanchored, second_pass=args.second_pass,
-                           second_pass_shape=not args.second_pass_no_shape)  # validate first
+                           second_pass_shape=not args.second_pass_no_shape, keep_best=args.keep_best)  # validate first
     base, info = load_model(args.checkpoint)
     if args.fine_tune:  # the model's own refiner, trained on (with --shape: a shape step added to it)
         if not base.cfg.refine_passes or args.glimpse or args.coords or args.shape_codes or args.keep:
@@ -238,6 +238,9 @@ def _add_refiner_parser(sub) -> None:
                         "model's slot order: made by CHECKPOINT, or by its encoder where slots keep their order); 0: off")
     r.add_argument("--second-pass-no-shape", action="store_true",
                    help="with --second-pass and a refiner that corrects shapes: leave the shape latent out of that term")
+    r.add_argument("--keep-best", action="store_true",
+                   help="save the refiner at its lowest held-out loss (logged every 250 steps, the start included) "
+                        "rather than at the last step")
     r.add_argument("--targets-from", default=None, metavar="MODEL",
                    help="the targets were made by MODEL, not by CHECKPOINT (e.g. CHECKPOINT is an encoder fine-tuned on "
                         "them with distillation, in the same slot order); checked against MODEL's weights instead")

@@ -59,3 +59,39 @@ def fit_steps(step: int, steps: int, opt: torch.optim.Optimizer, lr_at: Callable
     finally:
         bar.close()
     return step
+
+
+class BestHeldOut:
+    """The weights of a fitted part at its lowest held-out loss so far, kept in a file beside the run's checkpoint (so a
+    resumed fit still knows them). ``offer`` after each logged held-out loss; ``restore`` at the end loads them back,
+    so the fit saves the part where it generalised best rather than where it stopped (early stopping on the held-out
+    scenes of the training split, with the logged rows' granularity)."""
+
+    def __init__(self, path: str | Path, prefix: str, record: dict, error: type[Exception] = ValueError):
+        from prismonet.checkpoint import load_checkpoint
+
+        self.path, self.prefix, self.record = Path(path), prefix, json.loads(json.dumps(record))
+        self.step, self.loss = None, float("inf")
+        if self.path.is_file():
+            _, meta = load_checkpoint(self.path)
+            if meta.get("record") != self.record:
+                raise error(f"{self.path}: the best weights of a run with other settings; use a new folder")
+            self.step, self.loss = int(meta["step"]), float(meta["held_out"])
+
+    def offer(self, step: int, loss: float, module: torch.nn.Module) -> None:
+        """Keep ``module``'s weights if ``loss`` is lower than every loss offered before (ties keep the earlier)."""
+        from prismonet.checkpoint import save_checkpoint
+
+        if loss < self.loss:
+            save_checkpoint(self.path, {f"{self.prefix}{k}": v for k, v in module.state_dict().items()},
+                            {"step": step, "held_out": loss, "record": self.record})
+            self.step, self.loss = step, loss
+
+    def restore(self, module: torch.nn.Module) -> None:
+        """Load the kept weights into ``module`` (nothing offered yet: ``module`` stays as it is)."""
+        from prismonet.checkpoint import load_checkpoint
+
+        if self.step is None:
+            return
+        tensors, _ = load_checkpoint(self.path)
+        module.load_state_dict({k[len(self.prefix):]: v for k, v in tensors.items() if k.startswith(self.prefix)})

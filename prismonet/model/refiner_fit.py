@@ -92,6 +92,10 @@ class RefinerFitConfig:
     second_pass_shape: bool = True
     """With ``second_pass`` and a refiner that corrects shapes: the second-pass term regresses the shape latent too.
     ``False``: its shape weight is 0, so the shape step is fitted on the encoder's rows alone."""
+    keep_best: bool = False
+    """Save the refiner at its lowest logged held-out loss (every ``checkpoint_every`` steps, the starting refiner
+    included) rather than at the last step: early stopping on the held-out scenes (``part_fit.BestHeldOut``; session
+    106's 4-object fine-tune was best at step 250 of 3,000). False: the last step's (the fits before session 107)."""
     gray_targets: bool = False
     """The targets were fitted on the grey scenes themselves (``prismonet distill --gray``, ``DistillTargets.gray``): slot
     k's target is what the grey decoding's slot k found, and its texture latent a grey fit. Needs ``gray_share`` 1;
@@ -369,7 +373,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     ``device``: where the model, the cache and each batch go (the checkpoints and the model are saved from the CPU, so a
     run may resume on another device). Returns a summary."""
     from prismonet.checkpoint import resume_part, save_part
-    from prismonet.model.part_fit import append_row, batch_indices, fit_steps, read_rows
+    from prismonet.model.part_fit import BestHeldOut, append_row, batch_indices, fit_steps, read_rows
     from prismonet.model.io import save_model
 
     if not model.cfg.refine_passes:
@@ -393,7 +397,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     # the options added later are recorded only when on, so runs made before them resume
     fit = {k: v for k, v in asdict(cfg).items()
            if k != "steps" and not (k in ("color", "true_poses", "fill_hidden", "recolor", "gray_share", "gray_targets",
-                                          "reanchored", "second_pass") and not v)
+                                          "reanchored", "second_pass", "keep_best") and not v)
            and not (k == "second_pass_shape" and (v or not cfg.second_pass))}
     record = {"fit": fit, "targets": str(targets_dir), "target_scenes": count}
     if refiner_record(model):  # recorded when not the default, so older runs still resume
@@ -435,9 +439,13 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     log = out / "log.jsonl"
     later = tuple(({k: v.to(device) for k, v in c.items()}, w, shape) for c, w, shape in later)
     held_out = lambda: _held_out_loss(model, cache, ds, targets, held, weights, color=cfg.color, later=later)  # noqa: E731
+    best = BestHeldOut(out / "best_refiner.safetensors", "refiner.", record, DistillError) if cfg.keep_best else None
     if step == 0:
         log.write_text("")
-        append_row(log, {"step": 0, "held_out": held_out()})  # the refiner as it starts (no correction when fresh)
+        start = held_out()
+        append_row(log, {"step": 0, "held_out": start})  # the refiner as it starts (no correction when fresh)
+        if best is not None:
+            best.offer(0, start, model.refiner)
 
     def loss_at(at: int) -> torch.Tensor:
         return _loss(model, cache, ds, targets, batch_indices(cfg.seed, at, train_n, cfg.batch_size), weights, cfg.color,
@@ -446,6 +454,8 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     def report(at: int, train: float) -> str:
         row = {"step": at, "train": train, "held_out": held_out()}
         append_row(log, row)
+        if best is not None:
+            best.offer(at, row["held_out"], model.refiner)
         return f"held_out={row['held_out']:.4f}"
 
     model.refiner.train()
@@ -455,8 +465,13 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
                      "refiner", progress)
     model.eval()
     model.to("cpu")
+    saved = record
+    if best is not None:
+        best.restore(model.refiner)
+        saved = {**record, "best": {"step": best.step, "held_out": best.loss}}
     base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
-    save_model(model, out / "model", {**base, "refiner_fit": record})
+    save_model(model, out / "model", {**base, "refiner_fit": saved})
     rows = read_rows(log)
-    return {"steps": step, "held_out_start": rows[0]["held_out"], "held_out_end": rows[-1]["held_out"],
-            "seconds": time.perf_counter() - t0}
+    summary = {"steps": step, "held_out_start": rows[0]["held_out"], "held_out_end": rows[-1]["held_out"],
+               "seconds": time.perf_counter() - t0}
+    return summary if best is None else {**summary, "best_step": best.step, "held_out_best": best.loss}
