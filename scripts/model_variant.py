@@ -3,12 +3,12 @@ without training, e.g. more samples per ray.
 
     python3 scripts/model_variant.py [--shared] MODEL OUT FIELD=JSON [FIELD=JSON ...]
     python3 scripts/model_variant.py chairs_refiner runs/chairs_s48 render_samples=48
-    python3 scripts/model_variant.py --shared clevr3_sharp runs/s106/S_4 num_slots=4
+    python3 scripts/model_variant.py --shared clevr4 runs/s107/clevr5 num_slots=5
 
 MODEL is a shipped name or a run folder; OUT gets ``model.json`` and ``model.safetensors`` (the weights unchanged),
 which ``prismonet evaluate OUT ...`` reads. With ``--shared`` (MODEL a shipped name) OUT gets ``model.json`` alone, which
 names MODEL's weights file and its SHA-256 (``"weights_of"``, ``prismonet.model.io.weights_file``): how a model that is
-a shipped one with other settings ships without a second copy of the weights (``clevr2``, ``clevr4``, ``clevr5``).
+a shipped one with other settings ships without a second copy of the weights (``clevr2``, ``clevr5``: ``clevr4``'s).
 """
 
 from __future__ import annotations

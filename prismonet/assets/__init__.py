@@ -93,8 +93,9 @@ MODELS = {
     "clevr3_60k": PREVIOUS_MODEL,
     "clevr3_seek": SEEK_MODEL,
     "clevr3_distilled": DISTILLED_MODEL,
-    # clevr2, clevr4, clevr5: since session 106 the default (clevr3_sharp) decoded with 2, 4 and 5 slots; each ships as
-    # a model file alone that names the default's weights and their SHA-256 ("weights_of", prismonet.model.io.weights_file)
+    # clevr4: since session 107 the default (clevr3_sharp) with 4 slots and its refiner fine-tuned on 4-object targets;
+    # clevr2, clevr5: clevr4 decoded with 2 and 5 slots, each a model file alone that names clevr4's weights and their
+    # SHA-256 ("weights_of", prismonet.model.io.weights_file)
     "clevr2": "clevr2_model",
     "clevr4": "clevr4_model",
     "clevr5": "clevr5_model",
