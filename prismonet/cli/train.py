@@ -184,6 +184,23 @@ def add_parsers(sub) -> None:
     _add_color_step_parser(sub)
 
 
+def _add_fine_tune_options(r) -> None:
+    """The refiner command's options for training a refiner a model already has."""
+    r.add_argument("--fine-tune", action="store_true",
+                   help="train the refiner CHECKPOINT already has (its settings and passes kept; --shape may add a "
+                        "shape step) instead of a fresh one")
+    r.add_argument("--reanchored", type=float, default=0.0, metavar="W",
+                   help="with --fine-tune on an anchored model with re-anchoring: also fit the refiner on the slots the "
+                        "re-anchoring adds, with weight W, against targets `distill` made from CHECKPOINT itself (keep bars "
+                        "off, so that no slot is dropped); 0: off")
+    r.add_argument("--second-pass", type=float, default=0.0, metavar="W",
+                   help="with --fine-tune on a model of two refinement passes or more: also fit the refiner on what its "
+                        "second pass sees (the first pass's output), with weight W, against the same targets (in the "
+                        "model's slot order: made by CHECKPOINT, or by its encoder where slots keep their order); 0: off")
+    r.add_argument("--second-pass-no-shape", action="store_true",
+                   help="with --second-pass and a refiner that corrects shapes: leave the shape latent out of that term")
+
+
 def _add_refiner_parser(sub) -> None:
     r = sub.add_parser("refiner", help="train a learnt refinement pass on distillation targets, the encoder frozen (resumable)")
     r.add_argument("checkpoint", help="the trained model whose targets these are: run folder, .safetensors, or a shipped name")
@@ -225,19 +242,7 @@ def _add_refiner_parser(sub) -> None:
                    help="the refiner sees this share of the scenes grey (drawn once per scene from --seed), as a greyscale "
                         "photo shows them; the targets stay the search's fits to the colour scenes; needs --texture 0 (targets made by "
                         "`distill --gray` set it to 1 and allow a texture weight)")
-    r.add_argument("--fine-tune", action="store_true",
-                   help="train the refiner CHECKPOINT already has (its settings and passes kept; --shape may add a "
-                        "shape step) instead of a fresh one")
-    r.add_argument("--reanchored", type=float, default=0.0, metavar="W",
-                   help="with --fine-tune on an anchored model with re-anchoring: also fit the refiner on the slots the "
-                        "re-anchoring adds, with weight W, against targets `distill` made from CHECKPOINT itself (keep bars "
-                        "off, so that no slot is dropped); 0: off")
-    r.add_argument("--second-pass", type=float, default=0.0, metavar="W",
-                   help="with --fine-tune on a model of two refinement passes or more: also fit the refiner on what its "
-                        "second pass sees (the first pass's output), with weight W, against the same targets (in the "
-                        "model's slot order: made by CHECKPOINT, or by its encoder where slots keep their order); 0: off")
-    r.add_argument("--second-pass-no-shape", action="store_true",
-                   help="with --second-pass and a refiner that corrects shapes: leave the shape latent out of that term")
+    _add_fine_tune_options(r)
     r.add_argument("--keep-best", action="store_true",
                    help="save the refiner at its lowest held-out loss (logged every 250 steps, the start included) "
                         "rather than at the last step")
