@@ -3,12 +3,13 @@ without training, e.g. more samples per ray.
 
     python3 scripts/model_variant.py [--shared] MODEL OUT FIELD=JSON [FIELD=JSON ...]
     python3 scripts/model_variant.py chairs_refiner runs/chairs_s48 render_samples=48
-    python3 scripts/model_variant.py --shared clevr4 runs/s107/clevr5 num_slots=5
+    python3 scripts/model_variant.py --shared clevr3_r4 runs/s108/clevr5 num_slots=5
 
 MODEL is a shipped name or a run folder; OUT gets ``model.json`` and ``model.safetensors`` (the weights unchanged),
 which ``prismonet evaluate OUT ...`` reads. With ``--shared`` (MODEL a shipped name) OUT gets ``model.json`` alone, which
 names MODEL's weights file and its SHA-256 (``"weights_of"``, ``prismonet.model.io.weights_file``): how a model that is
-a shipped one with other settings ships without a second copy of the weights (``clevr2``, ``clevr5``: ``clevr4``'s).
+a shipped one with other settings ships without a second copy of the weights (``clevr2``, ``clevr4``, ``clevr5``: the
+default's). A MODEL that is itself such a file passes on the name of the model whose file it names.
 """
 
 from __future__ import annotations
@@ -63,12 +64,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = Path(argv[1])
     out.mkdir(parents=True, exist_ok=True)
-    info.pop("weights_of", None)
-    if shared:
+    owner = info.pop("weights_of", None)
+    if shared:  # name the model whose file holds the weights: MODEL itself, or the one MODEL names in turn
         from prismonet.assets import model_name
         from prismonet.files import sha256_file
 
-        info["weights_of"] = {"model": model_name(argv[0]), "sha256": sha256_file(weights)}
+        owner = owner["model"] if owner else model_name(argv[0])
+        info["weights_of"] = {"model": owner, "sha256": sha256_file(weights)}
     else:
         shutil.copy(weights, out / "model.safetensors")
     write_atomic(out / "model.json", json.dumps(info, indent=1))  # last: a copy cut short has no model.json

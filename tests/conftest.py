@@ -53,8 +53,16 @@ def _on_samples(name: str):
 
 @pytest.fixture(scope="module")
 def shipped():
-    """The default model (``clevr3_sharp``), the first four shipped test scenes, and the model's output on them."""
+    """The default model (``clevr3_r4`` since session 108), the first four shipped test scenes, and the model's output on
+    them."""
     return _on_samples("shipped")
+
+
+@pytest.fixture(scope="module")
+def sharp():
+    """``clevr3_sharp`` (the default of sessions 92-107), the first four shipped test scenes, and its output on them: the
+    poses that tests built on that model's decoding start from."""
+    return _on_samples("clevr3_sharp")
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ def test_demo_decomposes_the_shipped_scenes(tmp_path, capsys):
     assert fig is not None and fig.shape[0] > 2 * 64 and fig.shape[1] > 4 * 64
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(metrics["scenes"]) == 2 and 0 <= metrics["mean"]["AP0.5"] <= 1 and metrics["mean"]["PSNR"] > 10
-    assert metrics["model"] == "clevr3_sharp"  # the demo's start since session 90
+    assert metrics["model"] == "clevr3_r4"  # the demo's start since session 108 (clevr3_sharp in sessions 90-107)
     printed = capsys.readouterr().out
     assert "| **mean** |" in printed and str(out / "metrics.json") in printed
     assert ("encoder, then 4 pose-search rounds, shapes tabulated at 24^3 in the first 3, every code of each category tried "

@@ -1,10 +1,10 @@
-"""The shipped 2-, 4- and 5-object models (issue 23). Since session 107 ``clevr4`` is the default ``clevr3_sharp`` with
-4 slots and its refiner fine-tuned on 4-object targets (the default's encoder and colour step, its own refiner), and
-``clevr2`` and ``clevr5`` are ``clevr4`` decoded with 2 and 5 slots: each a model file alone that names ``clevr4``'s
-weights and their SHA-256 (``"weights_of"``), no second copy of them. Checked here: that they load as
-that, that a model file naming weights shipped again is refused in one line, and each on its 16 shipped test scenes
+"""The shipped 2-, 4- and 5-object models (issue 23). Since session 108 they are the default ``clevr3_r4`` (``clevr3_sharp``
+with its refiner fine-tuned on 4-object targets in session 107, when it shipped as ``clevr4``) decoded with 2, 4 and 5
+slots: each a model file alone that names the default's weights and their SHA-256 (``"weights_of"``), no second copy of
+them. Checked here: that they load as that, that the default is ``clevr3_sharp`` bit for bit except its refiner, that a
+model file naming weights shipped again is refused in one line, and each on its 16 shipped test scenes
 against its measured feed-forward figures with a margin of 0.05 AP and 10 % depth RMSE
-(``python3 -m prismonet evaluate clevrN prismonet/assets/samples/clevrN``)."""
+(``python3 -m prismonet evaluate clevrN prismonet/assets/samples/clevrN``)"""
 
 import json
 
@@ -21,34 +21,35 @@ MEASURED = {2: {"AP0.5": 1.000, "depth_RMSE": 0.108}, 4: {"AP0.5": 0.953, "depth
 
 
 @pytest.fixture(scope="module")
-def default_weights():
-    model, _ = load_model("shipped")
+def sharp_weights():
+    model, _ = load_model("clevr3_sharp")
     return model.state_dict()
 
 
-@pytest.mark.parametrize("n", [2, 5])
-def test_count_model_is_clevr4_with_n_slots(n):
+@pytest.mark.parametrize("n", [2, 4, 5])
+def test_count_model_is_the_default_with_n_slots(n):
     name = f"clevr{n}"
     assert name in model_names()
     assert asset_path(f"{name}_model.json").is_file() and not asset_path(f"{name}_model.safetensors").exists()
     model, info = load_model(name)
-    assert model.cfg.num_slots == n and info["weights_of"]["model"] == "clevr4"
-    got, want = model.state_dict(), load_model("clevr4")[0].state_dict()
+    assert model.cfg.num_slots == n and info["weights_of"]["model"] == "clevr3_r4"
+    got, want = model.state_dict(), load_model("shipped")[0].state_dict()
     assert got.keys() == want.keys()
     assert all(torch.equal(got[k], want[k]) for k in got)
 
 
-def test_clevr4_is_the_default_with_its_refiner_fine_tuned(default_weights):
-    """Only the refiner was fitted (``prismonet refiner --fine-tune``): every other weight is the default's bit for bit,
-    and the refiner's are not; the record says on which targets, with the second-pass term and the held-out minimum."""
-    assert asset_path("clevr4_model.safetensors").is_file()
-    model, info = load_model("clevr4")
-    assert model.cfg.num_slots == 4 and "weights_of" not in info
+def test_the_default_is_clevr3_sharp_with_its_refiner_fine_tuned(sharp_weights):
+    """Only the refiner was fitted (``prismonet refiner --fine-tune``): every other weight is ``clevr3_sharp``'s bit for
+    bit, and the refiner's are not; the record says on which targets, with the second-pass term and the held-out
+    minimum."""
+    assert asset_path("clevr3_r4_model.safetensors").is_file()
+    model, info = load_model("shipped")
+    assert model.cfg.num_slots == 3 and "weights_of" not in info
     got = model.state_dict()
-    assert got.keys() == default_weights.keys()
+    assert got.keys() == sharp_weights.keys()
     other = [k for k in got if not k.startswith("refiner.")]
-    assert len(other) > 0 and all(torch.equal(got[k], default_weights[k]) for k in other)
-    assert not all(torch.equal(got[k], default_weights[k]) for k in got if k.startswith("refiner."))
+    assert len(other) > 0 and all(torch.equal(got[k], sharp_weights[k]) for k in other)
+    assert not all(torch.equal(got[k], sharp_weights[k]) for k in got if k.startswith("refiner."))
     fit = info["refiner_fit"]
     assert fit["target_scenes"] == 9216 and fit["fit"]["second_pass"] == 1.0 and fit["fit"]["keep_best"]
 
@@ -67,7 +68,7 @@ def test_count_model_finds_its_objects(n):
 
 def test_a_model_file_whose_weights_were_shipped_again_is_refused(tmp_path):
     info = json.loads(asset_path("clevr5_model.json").read_text())
-    info["weights_of"]["sha256"] = "0" * 64  # as if clevr4's file had changed since the figures were measured
+    info["weights_of"]["sha256"] = "0" * 64  # as if the default's file had changed since the figures were measured
     (tmp_path / "model.json").write_text(json.dumps(info))
     with pytest.raises(CheckpointError, match="shipped again"):
         load_model(tmp_path)
@@ -82,7 +83,8 @@ def test_a_model_file_whose_weights_were_shipped_again_is_refused(tmp_path):
 
 
 def test_model_variant_shared_writes_the_json_alone(script, tmp_path):
-    """``scripts/model_variant.py --shared``: how these models were made; a run folder cannot be shared."""
+    """``scripts/model_variant.py --shared``: how these models were made (from ``clevr4``, itself a shared file: the
+    weights named are still the default's); a run folder cannot be shared."""
     main = script("model_variant").main
     assert main(["--shared", "clevr4", str(tmp_path / "v"), "num_slots=5"]) == 0
     assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["model.json"]

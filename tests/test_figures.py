@@ -46,13 +46,13 @@ def test_recon_figure_refuses_bad_input_in_one_line(argv, says, script, tmp_path
 
 
 def test_recon_figure_takes_test_time_steps_per_model(script, tmp_path):
-    """``--steps`` gives each column its own test-time steps (a pose search changes that column's reconstruction, not the
+    """``--steps`` gives each column its own test-time steps (a colour fit changes that column's reconstruction, not the
     figure's layout); one string per model."""
     from prismonet.assets import shipped_samples
     from prismonet.files import read_image
 
     base = ["shipped", "shipped", "--data", str(shipped_samples()), "--split", "test", "--rows", "1"]
-    script("recon_figure").main([*base, "--out", str(tmp_path / "a.png"), "--steps", "", "--search 1"])
+    script("recon_figure").main([*base, "--out", str(tmp_path / "a.png"), "--steps", "", "--fit-color 50"])
     script("recon_figure").main([*base, "--out", str(tmp_path / "c.png"), "--steps", "", ""])
     image, plain = read_image(tmp_path / "a.png"), read_image(tmp_path / "c.png")
     assert image.shape == plain.shape and image.shape[1] > 6 * 128  # input, depth, then two models' image and depth

@@ -330,15 +330,19 @@ def test_real_reconstruct_refinement_fits_the_photo_better(tmp_path):
 
 
 def test_real_reconstruct_extra_slots_never_fit_the_photo_worse(tmp_path):
-    """The kept slots minimise the colour error over all subsets, the first three steps included (the 3-slot
-    Clevr model, named: the photo commands' default has 8 slots)."""
+    """The kept slots minimise the colour error over all subsets, the first three steps included (a 3-slot Clevr model
+    with no refinement pass, named: the photo commands' default has 8 slots). A model with refinement passes refines the
+    slots after the choice, so there the guarantee is the encoder's alone (on this photo the default, ``clevr3_r4``,
+    reads 15.65 dB with 2 extra slots against 15.70 without)."""
     from realdata.reconstruct import reconstruct_photos
 
-    (plain,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e0", "shipped", progress=False)
-    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", "shipped",
+    (plain,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e0", "clevr3_fc", progress=False)
+    (extra,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e2", "clevr3_fc",
                                   inference=InferenceConfig(extra_slots=2), progress=False)
     assert extra["inference"]["extra_slots"] == 2 and extra["finite"] and extra["objects_found"] <= 3
-    assert plain["model"] == extra["model"] == DEFAULT_NAME  # "shipped" recorded by the name it stands for
+    assert plain["model"] == extra["model"] == "clevr3_fc"
+    (named,) = reconstruct_photos([SAMPLES / "blox.jpg"], tmp_path / "e1", "shipped", progress=False)
+    assert named["model"] == DEFAULT_NAME  # "shipped" recorded by the name it stands for
     assert extra["psnr"]["encoder"] >= plain["psnr"]["encoder"] - 1e-6, (plain["psnr"], extra["psnr"])
     with pytest.raises(ValueError, match="non-negative"):
         InferenceConfig(extra_slots=-1)

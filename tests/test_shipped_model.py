@@ -1,4 +1,4 @@
-"""The default 3-object model (``shipped``: ``clevr3_sharp`` since session 92) on the 16 shipped test scenes, against
+"""The default 3-object model (``shipped``: ``clevr3_r4`` since session 108, ``clevr3_sharp`` in sessions 92-107) on the 16 shipped test scenes, against
 thresholds set from its measured figures (EVALUATION.md) with a margin.
 
 Measured with ``python3 -m prismonet evaluate shipped prismonet/assets/samples/clevr3``: see
@@ -15,12 +15,12 @@ from prismonet.data.dataset import SceneDataset
 from prismonet.evaluation.evaluate import check_compatible, evaluate_model
 from prismonet.model.io import load_model
 
-MEASURED = {"AP0.5": 0.979, "depth_RMSE": 0.140, "PSNR": 26.06}  # clevr3_sharp, the default since session 92, with its three-pass colour step of session 105 (scripts/sample_pins.py; two passes, session 92: PSNR 25.99; one pass: 25.96); clevr3 (the default of sessions 56-91, its refiner fitted to 13K targets, the colour step of session 57): 1.000, 0.147, 25.46; on 8K (session 47): 0.958, 0.156; glimpse refiner (session 46): 0.979, 0.155; whole-image refiner (session 43): 1.000, 0.158; far-clipped distillation: 0.979, 0.172; far clip + seek: 0.958, 0.167; distilled: 0.865, 0.180; 60K: 0.823, 0.178
-MEASURED_SEARCH = {"AP0.5": 1.000, "depth_RMSE": 0.113, "PSNR": 28.07}  # clevr3_sharp (session 105; two-pass colour step, session 92: 1.000, 0.114, 27.95; one-pass: 1.000, 0.113, 27.97); clevr3: 1.000, 0.140, 27.44 (session 57); session 56: 1.000, 0.141, 27.37; session 47: 1.000, 0.149, 27.49; glimpse refiner (session 46): 0.979, 0.139, 27.4; whole-image refiner: 1.000, 0.150, 27.1; far-clipped distillation: 0.979, 0.146, 26.7; far clip + seek: 0.979, 0.147, 26.6; distilled: 0.958, 0.136, 26.0; 60K: 0.958, 0.145, 26.1
+MEASURED = {"AP0.5": 1.000, "depth_RMSE": 0.136, "PSNR": 26.64}  # clevr3_r4, the default since session 108 (scripts/sample_pins.py); clevr3_sharp, the default of sessions 92-107: 0.979, 0.140, 26.06, with its three-pass colour step of session 105 (scripts/sample_pins.py; two passes, session 92: PSNR 25.99; one pass: 25.96); clevr3 (the default of sessions 56-91, its refiner fitted to 13K targets, the colour step of session 57): 1.000, 0.147, 25.46; on 8K (session 47): 0.958, 0.156; glimpse refiner (session 46): 0.979, 0.155; whole-image refiner (session 43): 1.000, 0.158; far-clipped distillation: 0.979, 0.172; far clip + seek: 0.958, 0.167; distilled: 0.865, 0.180; 60K: 0.823, 0.178
+MEASURED_SEARCH = {"AP0.5": 1.000, "depth_RMSE": 0.121, "PSNR": 28.00}  # clevr3_r4 (session 108); clevr3_sharp: 1.000, 0.113, 28.07 (session 105; two-pass colour step, session 92: 1.000, 0.114, 27.95; one-pass: 1.000, 0.113, 27.97); clevr3: 1.000, 0.140, 27.44 (session 57); session 56: 1.000, 0.141, 27.37; session 47: 1.000, 0.149, 27.49; glimpse refiner (session 46): 0.979, 0.139, 27.4; whole-image refiner: 1.000, 0.150, 27.1; far-clipped distillation: 0.979, 0.146, 26.7; far clip + seek: 0.979, 0.147, 26.6; distilled: 0.958, 0.136, 26.0; 60K: 0.958, 0.145, 26.1
 AP_MARGIN = 0.05
 DEPTH_MARGIN = 1.10
 PSNR_MARGIN = 0.5
-MEASURED_AA_GAIN = 0.57  # PSNR of the 3 x 3 supersampled render over the one-ray render, the 16 scenes (clevr3_sharp, session 105: 26.63 against 26.06; session 92: 0.58; clevr3: 0.72 in session 57, 0.70 in session 56, 0.64 in session 55)
+MEASURED_AA_GAIN = 0.61  # PSNR of the 3 x 3 supersampled render over the one-ray render, the 16 scenes (clevr3_r4, session 108: 27.25 against 26.64; clevr3_sharp, session 105: 26.63 against 26.06; session 92: 0.58; clevr3: 0.72 in session 57, 0.70 in session 56, 0.64 in session 55)
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +59,9 @@ def test_shipped_model_files_travel_with_config_and_log():
     from prismonet.assets import asset_path, shipped_model
 
     stem = shipped_model()
-    assert stem.name == "clevr3_sharp_model"  # the default since session 92
+    assert stem.name == "clevr3_r4_model"  # the default since session 108, its refiner's fit log:
+    assert asset_path("clevr3_r4_fit_log.jsonl").is_file()
+    assert asset_path("clevr3_sharp_model.json").is_file()  # clevr3_sharp, the default of sessions 92-107, and its logs:
     assert stem.with_suffix(".safetensors").is_file() and stem.with_suffix(".json").is_file()
     assert asset_path("clevr3_sharp_fit_log.jsonl").is_file() and asset_path("clevr3_sharp_step_log.jsonl").is_file()
     assert asset_path("clevr3_model.json").is_file()  # clevr3, the default of sessions 56-91, and its logs:
@@ -73,7 +75,8 @@ def test_shipped_model_files_travel_with_config_and_log():
 
 
 @pytest.mark.parametrize("stem,config,log,recipe", [
-    ("clevr3_sharp_model", "clevr3_seek_distill_fc_config.json", "clevr3_seek_distill_fc_log.jsonl", "clevr3_seek_distill_fc.json"),  # the default: clevr3_fc's encoder
+    ("clevr3_r4_model", "clevr3_seek_distill_fc_config.json", "clevr3_seek_distill_fc_log.jsonl", "clevr3_seek_distill_fc.json"),  # the default: clevr3_fc's encoder
+    ("clevr3_sharp_model", "clevr3_seek_distill_fc_config.json", "clevr3_seek_distill_fc_log.jsonl", "clevr3_seek_distill_fc.json"),  # the default of sessions 92-107
     ("clevr3_model", "clevr3_keep13k_config.json", "clevr3_keep13k_log.jsonl", "clevr3_keep13k.json"),  # the default of sessions 56-91
     ("clevr3_keep_model", "clevr3_keep_config.json", "clevr3_keep_log.jsonl", "clevr3_keep.json"),  # shipped in sessions 47-55
     ("clevr3_glimpse_model", "clevr3_glimpse_config.json", "clevr3_glimpse_log.jsonl", "clevr3_glimpse.json"),  # shipped in session 46
@@ -130,7 +133,7 @@ def test_empty_ground_depth_error_is_the_reference(results):
 
 def test_supersampled_image_measures(results):
     """``supersample``: the same decomposition, its image measures from 3 x 3 rays per pixel; nothing else moves.
-    Measured on the 16 scenes: PSNR 26.63 against the one-ray render's 26.06 (+0.57 dB, session 105)."""
+    Measured on the 16 scenes: PSNR 27.25 against the one-ray render's 26.64 (+0.61 dB, session 108)."""
     model, _ = load_model("shipped")
     aa = evaluate_model(model, SceneDataset(shipped_samples(), split="test"), batch_size=16, progress=False, supersample=3)
     assert aa["supersample"] == 3 and results["supersample"] == 1
@@ -186,14 +189,15 @@ def test_the_colour_step_model_loads_and_its_step_lifts_the_image_only(results):
 
 
 def test_the_default_draws_cubes_as_cubes_feed_forward(results):
-    """``clevr3_sharp``, the default (session 91's refit on 20,736 scenes of targets; session 105's three-pass
-    colour step): its refiner corrects shape latents, so on the 16 scenes 12 of the 14 matched cubes (and 16 of 20 spheres, 8
-    of 12 cylinders) are drawn nearest a prior code of their own category, where ``clevr3`` (the default of sessions
-    56-91) draws none of its cubes so."""
+    """``clevr3_r4``, the default (``clevr3_sharp``, session 91's refit on 20,736 scenes of targets and session 105's
+    three-pass colour step, with its refiner fine-tuned on 9,216 4-object scenes of targets in session 107): its refiner
+    corrects shape latents, so on the 16 scenes 12 of the 14 matched cubes are drawn nearest a prior code of their own
+    category (as ``clevr3_sharp``), where ``clevr3`` (the default of sessions 56-91) draws none of its cubes so."""
     model, info = load_model("shipped")
     assert model.cfg.refiner_shape and model.cfg.color_step and model.cfg.refine_passes == 2
     assert model.cfg.color_step_passes == 3 and info["color_step_fit"]["passes"] == 3
-    assert info["refiner_fit"]["target_scenes"] == 20736 and info["color_step_fit"]["scenes"] == 24576
+    assert info["refiner_fit"]["target_scenes"] == 9216 and info["color_step_fit"]["scenes"] == 24576
+    assert info["refiner_fit"]["fit"]["second_pass"] == 1.0 and info["refiner_fit"]["best"]["step"] == 2750
     cats = results["shape_category"]
     assert cats["objects"]["cube"] == 14 and cats["cube"] >= 11 / 14  # measured 12 / 14
     old = evaluate_model(load_model("clevr3")[0], SceneDataset(shipped_samples(), split="test"), batch_size=16, progress=False)
@@ -211,13 +215,14 @@ def test_the_stage_one_model_loads_and_finds_its_objects(results):
 
 def test_shipped_names_the_default_and_records_resolve_it():
     """``"shipped"`` is one model under two names: the default's stem and ``MODELS``'s entry agree, records name the
-    resolved model, and ``clevr3`` is still the default of sessions 56-91."""
+    resolved model, and ``clevr3_sharp`` and ``clevr3`` are still the defaults of sessions 92-107 and 56-91."""
     from prismonet.assets import DEFAULT_MODEL, DEFAULT_NAME, MODELS, asset_path, model_name, named_model, shipped_model
 
-    assert MODELS[DEFAULT_NAME] == DEFAULT_MODEL and DEFAULT_NAME == "clevr3_sharp"
+    assert MODELS[DEFAULT_NAME] == DEFAULT_MODEL and DEFAULT_NAME == "clevr3_r4"
     assert named_model("shipped") == named_model(DEFAULT_NAME) == shipped_model() == asset_path(DEFAULT_MODEL)
     assert named_model("clevr3") == asset_path("clevr3_model") != shipped_model()
-    assert model_name("shipped") == "clevr3_sharp" and model_name("clevr3") == "clevr3" and model_name("runs/x") == "runs/x"
+    assert named_model("clevr3_sharp") == asset_path("clevr3_sharp_model") != shipped_model()
+    assert model_name("shipped") == "clevr3_r4" and model_name("clevr3") == "clevr3" and model_name("runs/x") == "runs/x"
 
 
 def test_sample_pins_script_measures_and_refuses_a_bad_name_in_one_line(script, monkeypatch, capsys):
