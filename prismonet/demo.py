@@ -18,13 +18,13 @@ from prismonet.files import write_atomic
 
 DEMO_MODEL = "shipped"
 """The model the demo starts from: the default (``"shipped"``), ``clevr3_r4`` since session 108: ``clevr3_sharp`` (the
-default of sessions 92-107, the demo's start since session 90: the 3-object model that draws cubes as cubes feed-forward)
-with its refiner fine-tuned on 4-object search targets (session 107). Feed-forward on the test split PSNR 27.06 and SSIM
-0.918 against ``clevr3_sharp``'s 26.57 and 0.911, mAP 0.776 against 0.754, the detection measures and the cubes drawn
-as cubes no lower (EVALUATION.md, "Session 108"; the model chosen by a rule written before its rows on new scenes).
-With the demo's search (shape trials from the 24^3 table, colour fit) on the first 1,000 test scenes ``clevr3_sharp``
-read PSNR 28.81, mAP 0.877, unfiltered AP0.5 0.993, AR0.5 0.984, cubes drawn as cubes 0.771 (sessions 90-92, 104-105),
-``clevr3_r4`` 28.84, 0.872, 0.993, 0.983 and 0.782: level with the search, ahead without it."""
+default of sessions 92-107, the demo's start since session 90: the 3-object model that draws cubes as cubes
+feed-forward) with its refiner fine-tuned on 4-object search targets (session 107). Feed-forward on the test split PSNR
+27.06 and SSIM 0.918 against ``clevr3_sharp``'s 26.57 and 0.911, mAP 0.776 against 0.754, the detection measures and the
+cubes drawn as cubes no lower (EVALUATION.md, "Session 108"; the model chosen by a rule written before its rows on new
+scenes). With the demo's search (shape trials from the 24^3 table, colour fit) on the first 1,000 test scenes
+``clevr3_sharp`` read PSNR 28.81, mAP 0.877, unfiltered AP0.5 0.993, AR0.5 0.984, cubes drawn as cubes 0.771 (sessions
+90-92, 104-105), ``clevr3_r4`` 28.84, 0.872, 0.993, 0.983 and 0.782: level with the search, ahead without it."""
 
 SHAPE_TRIAL_MODELS = ("shipped", "clevr3_r4", "clevr3", "clevr3_sharp", "clevr2", "clevr4", "clevr5")
 """The models whose demo search takes the shape trials unless told otherwise: those they pay for, the Clevr models of a
@@ -36,8 +36,9 @@ SHAPE_TRIAL_TABLE_MODELS = ("shipped", "clevr3_r4", "clevr3", "clevr3_sharp")
 """The models whose demo shape trials render from a table of shapes (``SHAPE_TRIAL_GRID``) with one more pass by the
 MLP, unless ``--search-grid`` says otherwise: measured on the 3-object model, 2.0x faster with no detection or image
 measure lower (EVALUATION.md, session 87; for ``clevr3_sharp`` the demo's setting was measured so: sessions 89-90;
-``clevr3_r4`` is it with the refiner fine-tuned, and takes its setting unmeasured against the MLP). The rule asked the same of the 2, 4 and 5 object models and the 5-object one
-failed it (cubes drawn as cubes 0.06 fewer), so they keep the MLP."""
+``clevr3_r4`` is it with the refiner fine-tuned, and takes its setting unmeasured against the MLP). The rule asked the
+same of the 2, 4 and 5 object models and the 5-object one failed it (cubes drawn as cubes 0.06 fewer), so they keep the
+MLP."""
 
 DEMO_BATCH = 8
 """Scenes decoded at a time. The test-time search and colour fit run on the batch (each scene keeps its own score

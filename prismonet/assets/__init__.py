@@ -31,9 +31,9 @@ Not the default: below it on allObj (0.917 against 0.939) and the count."""
 SHARP_MODEL = "clevr3_sharp_model"
 """The 3-object model that draws cubes as cubes feed-forward (session 89; refitted on 1.5x the targets in session 91;
 its colour step three passes since session 105, two since 92), every command's default (``"shipped"``) in sessions
-92-107. ``clevr3_fc`` with a keep refiner that also corrects each slot's shape latent (``--keep --shape``), fitted for 9,000
-steps to 20,736 training scenes of targets from the demo's search with shape trials (``prismonet distill clevr3_fc ...
---shape-trials --search-grid 24`` on ``data/clevr3`` joined with 12,288 seed-7 scenes, ``prismonet data join``;
+92-107. ``clevr3_fc`` with a keep refiner that also corrects each slot's shape latent (``--keep --shape``), fitted for
+9,000 steps to 20,736 training scenes of targets from the demo's search with shape trials (``prismonet distill clevr3_fc
+... --shape-trials --search-grid 24`` on ``data/clevr3`` joined with 12,288 seed-7 scenes, ``prismonet data join``;
 ``clevr3_sharp_fit_log.jsonl``), applied twice, then a colour step that looks three times (``color-step --passes 3``:
 1,500 steps of batch 24 on 24,576 seed-7 training images, ``clevr3_sharp_step_log.jsonl``); the whole route is
 ``scripts/sharp_refit.sh``, 996K images seen. Test, feed-forward: AP0.5 0.988 (0.987 unfiltered), AR0.5 0.977, allObj
@@ -44,17 +44,17 @@ R4_MODEL = "clevr3_r4_model"
 """Every command's default (``"shipped"``, ``DEFAULT_MODEL``) since session 108: ``clevr3_sharp`` (below) with its
 refiner fine-tuned on search targets of 9,216 4-object scenes (``data clevr --objects 4 --seed 7``; targets from
 ``clevr3_fc`` decoded with 4 slots, ``distill ... --search 3 --fit-color 50 --search-far-clip --shape-trials
---search-grid 24``), with the second-pass term and the held-out minimum kept (``prismonet refiner --fine-tune --steps 2750
---batch 16 --lr 1e-4 --holdout 512 --second-pass 1.0 --keep-best``; ``clevr3_r4_fit_log.jsonl``); the encoder and the
-colour step are ``clevr3_sharp``'s bit for bit. Shipped as ``clevr4`` in session 107 (4 slots); decoded with 3 slots
-since session 108, and ``clevr2``, ``clevr4`` and ``clevr5`` are these weights with 2, 4 and 5 slots. Test, feed-forward:
-AP0.5 0.987 unfiltered, AR0.5 0.978, allObj 0.942, mAP 0.776, PSNR 27.06, SSIM 0.918 (``clevr3_sharp``: 0.987, 0.977,
-0.939, 0.754, 26.57, 0.911), 77 % of cubes drawn as cubes: above the paper's 3/3 row on every measure
+--search-grid 24``), with the second-pass term and the held-out minimum kept (``prismonet refiner --fine-tune --steps
+2750 --batch 16 --lr 1e-4 --holdout 512 --second-pass 1.0 --keep-best``; ``clevr3_r4_fit_log.jsonl``); the encoder and
+the colour step are ``clevr3_sharp``'s bit for bit. Shipped as ``clevr4`` in session 107 (4 slots); decoded with 3 slots
+since session 108, and ``clevr2``, ``clevr4`` and ``clevr5`` are these weights with 2, 4 and 5 slots. Test,
+feed-forward: AP0.5 0.987 unfiltered, AR0.5 0.978, allObj 0.942, mAP 0.776, PSNR 27.06, SSIM 0.918 (``clevr3_sharp``:
+0.987, 0.977, 0.939, 0.754, 26.57, 0.911), 77 % of cubes drawn as cubes: above the paper's 3/3 row on every measure
 (EVALUATION.md, "Session 108")."""
 DEFAULT_NAME, DEFAULT_MODEL = "clevr3_r4", R4_MODEL
 """The name and stem that ``"shipped"`` names: the default model of every command (``clevr3_r4`` since session 108;
-``clevr3_sharp`` in sessions 92-107, ``clevr3`` in sessions 56-91). Names like ``"shipped"`` move when a new model ships: a run records the weights'
-fingerprint."""
+``clevr3_sharp`` in sessions 92-107, ``clevr3`` in sessions 56-91). Names like ``"shipped"`` move when a new model
+ships: a run records the weights' fingerprint."""
 PHOTO_NAME = "tabletop_keep"
 """The default model of the ``real`` commands and of ``realdata``'s photo functions (since session 93): the
 real-tabletop model (1-8 objects, randomised ground, light and camera, a keep refiner; ``configs/tabletop.json``,
