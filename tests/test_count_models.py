@@ -14,7 +14,7 @@ import torch
 from prismonet.assets import asset_path, model_names
 from prismonet.data.dataset import SceneDataset
 from prismonet.evaluation.evaluate import check_compatible, evaluate_model
-from prismonet.model.io import CheckpointError, load_model
+from prismonet.model.io import CheckpointError, load_model, save_model
 
 MEASURED = {2: {"AP0.5": 1.000, "depth_RMSE": 0.108}, 4: {"AP0.5": 0.953, "depth_RMSE": 0.170},
             5: {"AP0.5": 0.975, "depth_RMSE": 0.192}}
@@ -94,3 +94,18 @@ def test_model_variant_shared_writes_the_json_alone(script, tmp_path):
     assert main([str(tmp_path / "v"), str(tmp_path / "w"), "num_slots=5"]) == 0  # a full copy: the weights file too
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["model.json", "model.safetensors"]
     assert "weights_of" not in json.loads((tmp_path / "w" / "model.json").read_text())
+
+
+def test_a_model_saved_from_a_shared_file_loads_the_weights_written(tmp_path):
+    """A fine-tune of ``clevr5`` (which ships as the default's weights) writes weights of its own; its model file must
+    not carry over ``"weights_of"``, or loading it would read the default's weights and the fit would be silently lost
+    (session 109 found this: a refit read exactly as its start)."""
+    model, info = load_model("clevr5")
+    assert "weights_of" in info
+    with torch.no_grad():
+        next(p for n, p in model.named_parameters() if n.startswith("refiner.")).add_(0.5)
+    save_model(model, tmp_path / "model", {**info, "note": "a fine-tune"})
+    assert "weights_of" not in json.loads((tmp_path / "model.json").read_text())
+    again, _ = load_model(tmp_path)
+    got, want = again.state_dict(), model.state_dict()
+    assert all(torch.equal(got[k], want[k]) for k in want)

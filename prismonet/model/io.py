@@ -32,10 +32,15 @@ def prior_fingerprint(prior) -> str:
 
 
 def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
+    """Write ``stem.safetensors`` (the model's weights) and ``stem.json`` (its configuration and ``info``). The model
+    file written always names its own weights: a ``"weights_of"`` that ``info`` carries over from the model it started
+    from (e.g. a fine-tune of ``clevr5``, which ships as the default's weights) is left out, since loading would
+    otherwise read that model's weights instead of the ones written here."""
     from prismonet.checkpoint import save_checkpoint
 
     stem = Path(stem)
     save_checkpoint(stem.with_suffix(".safetensors"), dict(model.state_dict()), {"kind": "prismonet_model"})
+    info = {k: v for k, v in info.items() if k != "weights_of"}
     desc = {"model": asdict(model.cfg), "prior_fingerprint": prior_fingerprint(model.prior), **info}
     tmp = stem.with_name(f".{stem.name}.json.tmp")
     tmp.write_text(json.dumps(desc, indent=2))
