@@ -99,13 +99,14 @@ def test_model_variant_shared_writes_the_json_alone(script, tmp_path):
 def test_a_model_saved_from_a_shared_file_loads_the_weights_written(tmp_path):
     """A fine-tune of ``clevr5`` (which ships as the default's weights) writes weights of its own; its model file must
     not carry over ``"weights_of"``, or loading it would read the default's weights and the fit would be silently lost
-    (session 109 found this: a refit read exactly as its start)."""
+    (session 109 found this: a refit read exactly as its start); nor the start's description (``"note"``)."""
     model, info = load_model("clevr5")
     assert "weights_of" in info
     with torch.no_grad():
         next(p for n, p in model.named_parameters() if n.startswith("refiner.")).add_(0.5)
-    save_model(model, tmp_path / "model", {**info, "note": "a fine-tune"})
-    assert "weights_of" not in json.loads((tmp_path / "model.json").read_text())
+    save_model(model, tmp_path / "model", {**info, "init_from": "clevr5"})
+    saved = json.loads((tmp_path / "model.json").read_text())
+    assert "weights_of" not in saved and "note" not in saved and saved["init_from"] == "clevr5"  # the start's note: not this
     again, _ = load_model(tmp_path)
     got, want = again.state_dict(), model.state_dict()
     assert all(torch.equal(got[k], want[k]) for k in want)

@@ -32,15 +32,16 @@ def prior_fingerprint(prior) -> str:
 
 
 def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
-    """Write ``stem.safetensors`` (the model's weights) and ``stem.json`` (its configuration and ``info``). The model
-    file written always names its own weights: a ``"weights_of"`` that ``info`` carries over from the model it started
-    from (e.g. a fine-tune of ``clevr5``, which ships as the default's weights) is left out, since loading would
-    otherwise read that model's weights instead of the ones written here."""
+    """Write ``stem.safetensors`` (the model's weights) and ``stem.json`` (its configuration and ``info``). Two keys that
+    ``info`` carries over from the model a fit started from describe that model, not this one, and are left out: its
+    ``"weights_of"`` (e.g. a fine-tune of ``clevr5``, which ships as the default's weights: loading would otherwise read
+    those weights instead of the ones written here) and its ``"note"`` (a shipped model's description, written when it
+    ships; the start is recorded by ``"init_from"``)."""
     from prismonet.checkpoint import save_checkpoint
 
     stem = Path(stem)
     save_checkpoint(stem.with_suffix(".safetensors"), dict(model.state_dict()), {"kind": "prismonet_model"})
-    info = {k: v for k, v in info.items() if k != "weights_of"}
+    info = {k: v for k, v in info.items() if k not in ("weights_of", "note")}
     desc = {"model": asdict(model.cfg), "prior_fingerprint": prior_fingerprint(model.prior), **info}
     tmp = stem.with_name(f".{stem.name}.json.tmp")
     tmp.write_text(json.dumps(desc, indent=2))
