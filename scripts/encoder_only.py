@@ -43,8 +43,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"encoder_only: error: {args.model} has no refiner or colour step: it is an encoder already")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    save_model(enc, out / "model", {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
-               | {"encoder_of": str(args.model)})
+    save_model(enc, out / "model", {**info, "encoder_of": str(args.model)})
     print(f"wrote {out}/model.safetensors + model.json: the encoder of {args.model} "
           f"({sum(p.numel() for p in enc.parameters()):,} weights)")
     return 0

@@ -107,12 +107,11 @@ def main() -> None:
     new = PriSMONet(cfg, prior=model.prior)
     new.load_state_dict(model.state_dict())
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
     before = {k: getattr(model.cfg, k) for k in fields}  # the source's values of what changed
     change = {"source": str(args.model), "passes": before.pop("refine_passes"), **before}
-    if "refine_passes_from" in record:  # the source was itself a copy: keep that change too, as its "before"
-        change["before"] = record["refine_passes_from"]
-    save_model(new.eval(), Path(args.out) / "model", {**record, "refine_passes_from": change})
+    if "refine_passes_from" in info:  # the source was itself a copy: keep that change too, as its "before"
+        change["before"] = info["refine_passes_from"]
+    save_model(new.eval(), Path(args.out) / "model", {**info, "refine_passes_from": change})
     changes = ", ".join(f"{k} {getattr(model.cfg, k)} -> {v}" for k, v in fields.items() if k != "refine_passes")
     print(f"wrote {args.out}/model.safetensors + model.json: {model.cfg.refine_passes} -> {args.passes} refinement passes"
           + (f", {changes}" if changes else ""))

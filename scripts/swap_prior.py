@@ -35,8 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     new = PriSMONet(replace(model.cfg, prior=str(args.prior)))
     new.load_state_dict(model.state_dict())
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    record = {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
-    save_model(new.eval(), Path(args.out) / "model", {**record, "prior_swapped_from": {
+    save_model(new.eval(), Path(args.out) / "model", {**info, "prior_swapped_from": {
         "source": str(args.model), "prior": model.cfg.prior, "prior_fingerprint": prior_fingerprint(model.prior)}})
     print(f"wrote {args.out}/model.safetensors + model.json: prior {model.cfg.prior} -> {args.prior}")
     return 0

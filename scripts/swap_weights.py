@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"swap_weights: error: {e}") from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    save_model(model, out / "model", {k: v for k, v in info.items() if k not in ("model", "prior_fingerprint")}
-               | {"weights_from": f"{args.source} ({len(names)} tensors) into {args.model}"})
+    save_model(model, out / "model",
+               {**info, "weights_from": f"{args.source} ({len(names)} tensors) into {args.model}"})
     parts = sorted({n.split(".")[0] for n in names})
     print(f"wrote {out}/model.safetensors + model.json: {args.model} with the {', '.join(parts)} weights of {args.source}")
     return 0

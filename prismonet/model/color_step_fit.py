@@ -224,8 +224,7 @@ def fit_color_step(model, ds, count: int, out_dir: str | Path, cfg: ColorStepFit
     step = fit_steps(step, cfg.steps, opt, lambda at: learning_rate(cfg, at), loss_at, cfg.checkpoint_every, report,
                      lambda at: save_part(ckpt, "color_step.", model.color_step, opt, at, record), "colour step", progress)
     model.eval()
-    base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
-    save_model(model, out / "model", {**base, "color_step_fit": record})
+    save_model(model, out / "model", {**(info or {}), "color_step_fit": record})
     rows = read_rows(log)
     return {"steps": step, "held_out_psnr_start": rows[0]["held_out_psnr"], "held_out_psnr_end": rows[-1]["held_out_psnr"],
             "seconds": time.perf_counter() - t0}

@@ -31,9 +31,14 @@ def prior_fingerprint(prior) -> str:
     return weights_fingerprint(prior.decoder)
 
 
+OWN_KEYS = ("model", "prior_fingerprint", "weights_of", "note")
+"""The keys of a model file that describe that model alone, never carried into a model written from it."""
+
+
 def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
-    """Write ``stem.safetensors`` (the model's weights) and ``stem.json`` (its configuration and ``info``). Two keys that
-    ``info`` carries over from the model a fit started from describe that model, not this one, and are left out: its
+    """Write ``stem.safetensors`` (the model's weights) and ``stem.json`` (its configuration and ``info``). ``info``
+    may be the record of the model a fit or script started from, as it loaded: the keys of it that describe that model,
+    not this one, are left out (``OWN_KEYS``): its ``"model"`` and ``"prior_fingerprint"`` (written anew here), its
     ``"weights_of"`` (e.g. a fine-tune of ``clevr5``, which ships as the default's weights: loading would otherwise read
     those weights instead of the ones written here) and its ``"note"`` (a shipped model's description, written when it
     ships; the start is recorded by ``"init_from"``)."""
@@ -41,7 +46,7 @@ def save_model(model, stem: str | Path, info: dict) -> tuple[Path, Path]:
 
     stem = Path(stem)
     save_checkpoint(stem.with_suffix(".safetensors"), dict(model.state_dict()), {"kind": "prismonet_model"})
-    info = {k: v for k, v in info.items() if k not in ("weights_of", "note")}
+    info = {k: v for k, v in info.items() if k not in OWN_KEYS}
     desc = {"model": asdict(model.cfg), "prior_fingerprint": prior_fingerprint(model.prior), **info}
     tmp = stem.with_name(f".{stem.name}.json.tmp")
     tmp.write_text(json.dumps(desc, indent=2))

@@ -469,8 +469,7 @@ def fit_refiner(model, ds, targets_dir: str | Path, out_dir: str | Path, cfg: Re
     if best is not None:
         best.restore(model.refiner)
         saved = {**record, "best": {"step": best.step, "held_out": best.loss}}
-    base = {k: v for k, v in (info or {}).items() if k not in ("model", "prior_fingerprint")}
-    save_model(model, out / "model", {**base, "refiner_fit": saved})
+    save_model(model, out / "model", {**(info or {}), "refiner_fit": saved})
     rows = read_rows(log)
     summary = {"steps": step, "held_out_start": rows[0]["held_out"], "held_out_end": rows[-1]["held_out"],
                "seconds": time.perf_counter() - t0}
