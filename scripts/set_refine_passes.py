@@ -3,7 +3,8 @@
     python3 scripts/set_refine_passes.py runs/clevr3_glimpse 2 runs/clevr3_glimpse_2pass
     python3 scripts/set_refine_passes.py runs/s48/a18_keep_fit 2 runs/s48/a18_keep_re2 --reanchor 2   # anchored models
 
-``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: anchored steps after refinement, into empty slots);
+``--reanchor N`` also sets ``reanchor_steps`` (``ModelConfig``: encoder steps after refinement, into empty slots,
+anchored where the model is);
 ``--reanchor-keep X`` sets ``reanchor_keep_logit``, the keep logit a re-anchored slot must beat (``none``: never
 dropped); ``--anchor-shade K`` sets ``anchor_shade_min``, the least even darkening the anchor rule reads as a cast
 shadow (``none``: off, as trained); ``--anchor-gray T`` sets ``anchor_gray_tol``, the luminance difference the anchor
@@ -40,7 +41,8 @@ def main() -> None:
     ap.add_argument("passes", type=int)
     ap.add_argument("out", help="new run folder")
     ap.add_argument("--reanchor", type=int, default=None, metavar="N",
-                    help="also set reanchor_steps to N (an anchored model: N more anchored steps after refinement)")
+                    help="also set reanchor_steps to N: N more encoder steps after refinement, into empty slots "
+                         "(anchored where the model is)")
     ap.add_argument("--reanchor-keep", default=None, metavar="X",
                     help="also set reanchor_keep_logit: a re-anchored slot is dropped where its keep logit is <= X "
                          "('none': never dropped)")
@@ -68,8 +70,8 @@ def main() -> None:
         raise SystemExit(f"{args.model}: needs a model with a refiner and passes >= 1 (it has {model.cfg.refine_passes}, asked {args.passes})")
     fields = {"refine_passes": args.passes}
     if args.reanchor is not None:
-        if not model.cfg.anchor or args.reanchor < 0:
-            raise SystemExit(f"{args.model}: --reanchor needs an anchored model and N >= 0 (anchor {model.cfg.anchor}, asked {args.reanchor})")
+        if args.reanchor < 0:
+            raise SystemExit(f"{args.model}: --reanchor needs N >= 0, asked {args.reanchor}")
         fields["reanchor_steps"] = args.reanchor
     if args.reanchor_keep is not None:
         fields["reanchor_keep_logit"] = number_or_none("--reanchor-keep", args.reanchor_keep)

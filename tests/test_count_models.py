@@ -1,10 +1,11 @@
 """The shipped 2-, 4- and 5-object models (issue 23). Since session 108 they are the default ``clevr3_r4`` (``clevr3_sharp``
 with its refiner fine-tuned on 4-object targets in session 107, when it shipped as ``clevr4``) decoded with 2, 4 and 5
 slots: each a model file alone that names the default's weights and their SHA-256 (``"weights_of"``), no second copy of
-them. Checked here: that they load as that, that the default is ``clevr3_sharp`` bit for bit except its refiner, that a
-model file naming weights shipped again is refused in one line, and each on its 16 shipped test scenes
-against its measured feed-forward figures with a margin of 0.05 AP and 10 % depth RMSE
-(``python3 -m prismonet evaluate clevrN prismonet/assets/samples/clevrN``)"""
+them. Since session 111 all of them take two plain encoder steps after refinement into the slots the keep output
+dropped (``reanchor_steps`` 2; ``clevr5`` keeps a new slot above keep logit 1). Checked here: that they load as that,
+that the default is ``clevr3_sharp`` bit for bit except its refiner, that a model file naming weights shipped again is
+refused in one line, and each on its 16 shipped test scenes against its measured feed-forward figures with a margin of
+0.05 AP and 10 % depth RMSE (``python3 -m prismonet evaluate clevrN prismonet/assets/samples/clevrN``)"""
 
 import json
 
@@ -16,6 +17,7 @@ from prismonet.data.dataset import SceneDataset
 from prismonet.evaluation.evaluate import check_compatible, evaluate_model
 from prismonet.model.io import CheckpointError, load_model, save_model
 
+RESTEPS = {2: (2, 0.0), 4: (2, 0.0), 5: (2, 1.0)}  # session 111: (reanchor_steps, reanchor_keep_logit)
 MEASURED = {2: {"AP0.5": 1.000, "depth_RMSE": 0.108}, 4: {"AP0.5": 0.953, "depth_RMSE": 0.170},
             5: {"AP0.5": 0.975, "depth_RMSE": 0.192}}
 
@@ -33,6 +35,7 @@ def test_count_model_is_the_default_with_n_slots(n):
     assert asset_path(f"{name}_model.json").is_file() and not asset_path(f"{name}_model.safetensors").exists()
     model, info = load_model(name)
     assert model.cfg.num_slots == n and info["weights_of"]["model"] == "clevr3_r4"
+    assert (model.cfg.reanchor_steps, model.cfg.reanchor_keep_logit) == RESTEPS[n]
     got, want = model.state_dict(), load_model("shipped")[0].state_dict()
     assert got.keys() == want.keys()
     assert all(torch.equal(got[k], want[k]) for k in got)
@@ -45,6 +48,7 @@ def test_the_default_is_clevr3_sharp_with_its_refiner_fine_tuned(sharp_weights):
     assert asset_path("clevr3_r4_model.safetensors").is_file()
     model, info = load_model("shipped")
     assert model.cfg.num_slots == 3 and "weights_of" not in info
+    assert model.cfg.reanchor_steps == 2  # session 111: plain encoder steps into dropped slots after refinement
     got = model.state_dict()
     assert got.keys() == sharp_weights.keys()
     other = [k for k in got if not k.startswith("refiner.")]

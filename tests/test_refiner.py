@@ -848,8 +848,7 @@ def test_refiner_runs_on_active_slots_only():
 
 def test_reanchor_fills_empty_slots_and_leaves_the_others():
     """``reanchor_steps``: after refinement, more anchored steps go into empty slots only (at most that many per
-    scene); the slots the refiner left active keep their latents exactly; training ignores it; it needs an anchored
-    model with a refiner."""
+    scene); the slots the refiner left active keep their latents exactly; training ignores it; it needs a refiner."""
     from dataclasses import replace
 
     from prismonet.assets import samples_for
@@ -884,6 +883,38 @@ def test_reanchor_fills_empty_slots_and_leaves_the_others():
     for bad in ({"reanchor_steps": 1}, {"reanchor_steps": 1, "anchor": True}, {"reanchor_steps": -1, "anchor": True, "refine_passes": 1}):
         with pytest.raises(ValueError, match="reanchor_steps"):
             ModelConfig(**bad)
+
+
+def test_reanchor_on_an_unanchored_model_takes_plain_steps_into_empty_slots():
+    """An unanchored model's ``reanchor_steps`` are its plain recurrent step on the refined composition: a new slot
+    goes only into a scene with an empty slot (one its keep output dropped), one per step at most, and every slot the
+    refiner kept keeps its pose and shape exactly (the colour step then recolours every slot against the new
+    composition, so texture latents may move)."""
+    from dataclasses import replace
+
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.model.prismonet import PriSMONet
+
+    shipped, _ = load_model("clevr5")  # the default decoded with 5 slots: unanchored, a keep refiner
+    assert not shipped.cfg.anchor and shipped.cfg.refiner_keep
+    models = []
+    for steps in (0, 1):
+        m = PriSMONet(replace(shipped.cfg, reanchor_steps=steps), prior=shipped.prior)
+        m.load_state_dict(shipped.state_dict())
+        models.append(m.eval())
+    b = SceneDataset(samples_for("clevr5"), split="test").batch(list(range(16)))
+    with torch.no_grad():
+        before, after = (m(b.rgb, b.K, b.T_world_cam, b.ground_z).latents.params for m in models)
+    old, new = before.active, after.active
+    assert bool((new | ~old).all())  # nothing the refiner kept is lost
+    added = new & ~old
+    room = ~old.all(1)
+    assert bool(added.any()) and int(added.sum(1).max()) == 1
+    assert not bool(added[~room].any())  # a scene whose slots are all kept takes no step
+    for name in ("position", "scale", "cos_sin", "z_sh"):
+        assert torch.equal(getattr(after, name)[old], getattr(before, name)[old])
 
 
 def test_reanchor_keep_bar_keeps_more_new_slots_only():
@@ -1109,17 +1140,17 @@ def test_second_pass_term_without_the_shape_ignores_the_shape_targets():
         assert change(((sc, 1.0, True),)) > main + 0.01
 
 
-def test_set_refine_passes_refuses_reanchor_on_an_unanchored_model(tmp_path):
-    """``scripts/set_refine_passes.py --reanchor`` on a model without anchors: one line, exit status non-zero, nothing
-    written."""
+def test_set_refine_passes_refuses_bad_settings_with_one_line(tmp_path):
+    """``scripts/set_refine_passes.py`` with a setting the model cannot take (a negative ``--reanchor``, anchor
+    settings on a model without anchors, ...): one line, exit status non-zero, nothing written."""
     import subprocess
     import sys
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "set_refine_passes.py"
-    r = subprocess.run([sys.executable, str(script), "clevr3", "2", str(tmp_path / "out"), "--reanchor", "2"],
+    r = subprocess.run([sys.executable, str(script), "clevr3", "2", str(tmp_path / "out"), "--reanchor", "-1"],
                        capture_output=True, text=True)
-    assert r.returncode != 0 and "--reanchor needs an anchored model" in r.stderr
+    assert r.returncode != 0 and "--reanchor needs N >= 0" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
     for name, extra, says in (("clevr3", ["--anchor-shade", "0.5"], "--anchor-shade needs an anchored model"),
                               ("tabletop_keep", ["--anchor-shade", "1.5"], "anchor_shade_min must be in"),

@@ -145,10 +145,12 @@ class ModelConfig:
     composition's luminance misses the input's by more than this, and no pixel reads as a shadow
     (``AnchorRule.gray_tol``). None: grey images are read as colour ones, as trained."""
     reanchor_steps: int = 0
-    """With ``anchor`` and a refiner, at inference (beyond the paper): after the refinement passes, up to this many
-    more anchored encoder steps on what the *refined* slots leave unexplained, each into the scene's first empty slot,
-    then the refiner's passes on the new slots alone. The encoder stopped on a composition that the refiner then
-    corrected; a part it had given up on (a failed region) may now stand alone. 0: off. Training ignores it."""
+    """With a refiner, at inference (beyond the paper): after the refinement passes, up to this many more encoder
+    steps on what the *refined* slots leave unexplained, each into the scene's first empty slot (one the keep output
+    dropped, or never filled), then the refiner's passes on the new slots alone. The encoder stopped on a composition
+    that the refiner then corrected; a part it had given up on may now stand alone. An anchored model's steps are
+    anchored (a scene with no unexplained part left takes none); an unanchored model's are its plain recurrent step,
+    seeing the refined composition. 0: off. Training ignores it."""
     reanchor_keep_logit: float | None = 0.0
     """With ``reanchor_steps`` and ``refiner_keep``: a re-anchored slot is dropped where its keep logit is at or below
     this (the encoder's own slots: at or below 0). The keep output was fitted on the encoder's slots, and drops most
@@ -173,8 +175,8 @@ class ModelConfig:
             raise ValueError(f"anchor_shade_min must be in (0, {SHADE_MAX}) and anchor_shade_tol > 0, got {self.anchor_shade_min} and {self.anchor_shade_tol}")
         if self.anchor_min_area < 1 or not self.anchor_color_tol > 0:
             raise ValueError(f"anchor_min_area must be >= 1 and anchor_color_tol > 0, got {self.anchor_min_area} and {self.anchor_color_tol}")
-        if self.reanchor_steps < 0 or (self.reanchor_steps and not (self.anchor and self.refine_passes)):
-            raise ValueError(f"reanchor_steps must be >= 0 and needs anchor and refine_passes >= 1, got {self.reanchor_steps}")
+        if self.reanchor_steps < 0 or (self.reanchor_steps and not self.refine_passes):
+            raise ValueError(f"reanchor_steps must be >= 0 and needs refine_passes >= 1, got {self.reanchor_steps}")
         if self.reanchor_keep_logit is not None and not math.isfinite(self.reanchor_keep_logit):
             raise ValueError(f"reanchor_keep_logit must be a finite number or None (never drop), got {self.reanchor_keep_logit}")
         if self.refiner_rescue_px < 0 or (self.refiner_rescue_px and not (self.refine_passes and self.refiner_keep)):

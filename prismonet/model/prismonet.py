@@ -413,9 +413,9 @@ class PriSMONet(nn.Module):
     @torch.no_grad()
     def reanchor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                  ground_z: torch.Tensor) -> ModelOutput:
-        """``cfg.reanchor_steps`` more anchored encoder steps after refinement (see ``ModelConfig.reanchor_steps``):
-        each step's slot goes into its scene's first empty slot; a scene with no empty slot, or nothing left
-        unexplained, takes no step. Then the refiner's passes on the new slots alone."""
+        """``cfg.reanchor_steps`` more encoder steps after refinement (see ``ModelConfig.reanchor_steps``), anchored
+        where the model is: each step's slot goes into its scene's first empty slot; a scene with no empty slot (or,
+        anchored, nothing left unexplained) takes no step. Then the refiner's passes on the new slots alone."""
         out, added = self.reanchor_slots(out, image, K, T_world_cam, ground_z)
         if not added.any():
             return out
@@ -440,16 +440,18 @@ class PriSMONet(nn.Module):
         cur_image = out.composite.image
         cur_depth = torch.where(shown, out.obj_depth, torch.full_like(out.obj_depth, float("inf"))).amin(1, keepdim=True)
         cur_mask = shown.any(1, keepdim=True).to(image.dtype)
-        rule, failed = self.anchor_rule(), torch.zeros(B, H, W, dtype=torch.bool, device=dev)
+        anchored = self.cfg.anchor
+        rule, failed = (self.anchor_rule(), torch.zeros(B, H, W, dtype=torch.bool, device=dev)) if anchored else (None, None)
         added = torch.zeros(B, N, dtype=torch.bool, device=dev)
         rows = torch.arange(B, device=dev)
         for _ in range(self.cfg.reanchor_steps):
-            anchors = find_anchors(image, cur_image, rule, failed)
-            live = anchors.found & ~active.all(1)
+            anchors = find_anchors(image, cur_image, rule, failed) if anchored else None
+            live = ~active.all(1) if anchors is None else anchors.found & ~active.all(1)
             if not live.any():
                 break
-            raw = self.encoder(self.encoder_input(image, cur_image, cur_mask, anchors.region))
-            slot = self.decode_latent(raw, K, T_world_cam, ground_z, anchors.uv)
+            region, uv = (None, None) if anchors is None else (anchors.region, anchors.uv)
+            raw = self.encoder(self.encoder_input(image, cur_image, cur_mask, region))
+            slot = self.decode_latent(raw, K, T_world_cam, ground_z, uv)
             slot.active = live[:, None].clone()
             obj = render_objects(self.sdf_fn, self.color_fn, slot, K, T_world_cam, H, W, self.render_settings())
             d, m, c = obj.depth, obj.mask, obj.color[:, 0]
@@ -457,7 +459,8 @@ class PriSMONet(nn.Module):
             cur_image = torch.where(win, c, cur_image)
             cur_depth = torch.where(win, d, cur_depth)
             cur_mask = torch.maximum(cur_mask, m.to(image.dtype))
-            failed |= rule.failed(anchors, image, cur_image)
+            if anchors is not None:
+                failed |= rule.failed(anchors, image, cur_image)
             k = (~active).to(torch.int8).argmax(1)  # each scene's first empty slot
             b, k = rows[live], k[live]
             for name in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
