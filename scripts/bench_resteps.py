@@ -1,9 +1,10 @@
 """What the encoder steps after refinement cost (``ModelConfig.reanchor_steps``): the feed-forward decoding of one model
-on the same batches with its own setting and with ``reanchor_steps = 0``, alternating in one run; medians.
+on the same batches with its own setting, with it but every slot rendered again after each step and pass (as before
+session 111, when only the changed slots are), and with ``reanchor_steps = 0``, alternating in one run; medians.
 
     python3 scripts/bench_resteps.py clevr5 data/clevr5_val109 --split val --rounds 7 --batch 50
 
-Prints one row per setting (median ms per scene, min and max over the timed rounds) and the ratio of the medians.
+Prints one row per setting (median ms per scene, min and max over the timed rounds) and the ratios of the medians.
 Run it on a quiet machine (``uptime``): the figures go to BENCHMARKS.md, never into a test.
 """
 
@@ -21,9 +22,11 @@ from prismonet.model.io import load_model
 from prismonet.model.prismonet import PriSMONet
 
 
-def variant(model: PriSMONet, steps: int) -> PriSMONet:
+def variant(model: PriSMONet, steps: int, render_all: bool = False) -> PriSMONet:
     m = PriSMONet(replace(model.cfg, reanchor_steps=steps), prior=model.prior)
     m.load_state_dict(model.state_dict())
+    if render_all:  # the baseline: no slot's render reused
+        m._render_changed = lambda out, params, changed, *a: PriSMONet._render_changed(m, out, params, None, *a)
     return m.eval()
 
 
@@ -47,8 +50,9 @@ def main() -> None:
     if len(ds) < args.batch * args.rounds:
         raise SystemExit(f"bench_resteps: {args.data} {args.split} has {len(ds)} scenes, "
                          f"needs {args.batch * args.rounds}")
-    settings = {f"reanchor_steps {model.cfg.reanchor_steps}": variant(model, model.cfg.reanchor_steps),
-                "reanchor_steps 0": variant(model, 0)}
+    n = model.cfg.reanchor_steps
+    settings = {f"{n} steps": variant(model, n), f"{n} steps, all again": variant(model, n, True),
+                "0 steps": variant(model, 0)}
     times: dict[str, list[float]] = {k: [] for k in settings}
     with torch.no_grad():
         for r in range(args.rounds):
@@ -60,10 +64,11 @@ def main() -> None:
                     times[name].append(1000 * (time.perf_counter() - t0) / args.batch)
     med = {k: statistics.median(v) for k, v in times.items()}
     for k, v in times.items():
-        print(f"{args.model:12s} {k:18s} ms per scene: median {med[k]:6.1f} (min {min(v):.1f}, max {max(v):.1f}), "
+        print(f"{args.model:8s} {k:18s} ms per scene: median {med[k]:6.1f} (min {min(v):.1f}, max {max(v):.1f}), "
               f"{len(v)} batches of {args.batch}")
-    a, b0 = med.values()
-    print(f"{args.model}: the steps after refinement cost {a / b0:.2f}x the decoding without them")
+    a, full, none = med.values()
+    print(f"{args.model}: the steps after refinement cost {a / none:.2f}x the decoding without them "
+          f"({full / none:.2f}x rendering every slot again; {full / a:.2f}x speed-up)")
 
 
 if __name__ == "__main__":

@@ -917,6 +917,28 @@ def test_reanchor_on_an_unanchored_model_takes_plain_steps_into_empty_slots():
         assert torch.equal(getattr(after, name)[old], getattr(before, name)[old])
 
 
+def test_steps_after_refinement_render_only_the_slots_they_change():
+    """The steps after refinement and the refiner's passes on their new slots render those slots alone and keep every
+    other slot's render (``PriSMONet._render_changed``): the result is the render of every slot, its hits included."""
+    from prismonet.assets import samples_for
+    from prismonet.data.dataset import SceneDataset
+    from prismonet.model.io import load_model
+    from prismonet.render import render_objects
+
+    model, _ = load_model("clevr5")
+    assert model.cfg.reanchor_steps and not model.cfg.anchor
+    b = SceneDataset(samples_for("clevr5"), split="test").batch(list(range(16)))
+    with torch.no_grad():
+        out = model(b.rgb, b.K, b.T_world_cam, b.ground_z)
+        full = render_objects(model.sdf_fn, model.color_fn, out.latents.params, b.K, b.T_world_cam, 64, 64,
+                              model.render_settings())
+    assert bool(out.latents.params.active.any(1).all())
+    assert torch.equal(out.obj_mask, full.mask) and torch.equal(out.obj_depth, full.depth)
+    assert torch.allclose(out.obj_color, full.color, atol=1e-5)
+    key = lambda r: torch.sort(r.hit_slot * 64 * 64 + r.hit_pix).values
+    assert torch.equal(key(out.render), key(full))
+
+
 def test_reanchor_keep_bar_keeps_more_new_slots_only():
     """``reanchor_keep_logit``: a lower bar for the re-anchored slots keeps a superset of them (``None``: every one),
     and never changes the encoder's own slots, their activity or their latents."""

@@ -374,11 +374,33 @@ class PriSMONet(nn.Module):
             was = subject.active if subject.active is not None else torch.ones_like(new.active)
             lost = was & ~new.active
             dropped = lost if dropped is None else (dropped | lost) & ~new.active
-        obj = render_objects(self.sdf_fn, self.color_fn, new, K, T_world_cam, H, W, self.render_settings())
+        obj = self._render_changed(out, new, only, K, T_world_cam, H, W)
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(new, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps,
                            None if keep_logit is None else keep_logit.reshape(new.scale.shape), obj, dropped)
+
+    def _render_changed(self, out: ModelOutput, params: SceneParams, changed: torch.Tensor | None, K: torch.Tensor,
+                        T_world_cam: torch.Tensor, H: int, W: int) -> ObjectRender:
+        """The per-object render of ``params``, where only the slots ``changed (B, N)`` bool may differ from those
+        ``out`` was rendered with (latents or activity): those are rendered again (an inactive one as empty) and every
+        other slot's render is ``out``'s. Each slot is rendered on its own, so this is the render of every slot at the
+        cost of the changed ones; with ``changed`` ``None``, or ``out`` without its hits, every slot is rendered."""
+        settings = self.render_settings()
+        soft_out = out.obj_soft_mask is not None
+        if changed is None or out.render is None or out.obj_color is None or soft_out != (settings.soft_mask_tau > 0):
+            return render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
+        active = params.active if params.active is not None else torch.ones_like(changed)
+        obj = render_objects(self.sdf_fn, self.color_fn, replace(params, active=changed & active), K, T_world_cam, H, W,
+                             settings)
+        c = changed[:, :, None, None]
+        soft = None if obj.soft_mask is None else torch.where(c, obj.soft_mask, out.obj_soft_mask)
+        r = out.render
+        old = (~changed).reshape(-1)[r.hit_slot]
+        hits = [torch.cat([h[old], h_new]) for h, h_new in ((r.hit_slot, obj.hit_slot), (r.hit_pix, obj.hit_pix),
+                                                             (r.hit_x_obj, obj.hit_x_obj))]
+        return ObjectRender(torch.where(c, obj.depth, out.obj_depth), torch.where(c, obj.mask, out.obj_mask),
+                            torch.where(c[:, :, None], obj.color, out.obj_color), *hits, soft_mask=soft)
 
     @torch.no_grad()
     def rescue(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
@@ -472,7 +494,7 @@ class PriSMONet(nn.Module):
         if not added.any():
             return out, added
         params.active = active
-        obj = render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, self.render_settings())
+        obj = self._render_changed(out, params, added, K, T_world_cam, H, W)
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
         return ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
                            obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped), added
