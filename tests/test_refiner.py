@@ -277,6 +277,17 @@ def test_with_shape_step_decodes_as_before_until_trained(clevr3):
         with_shape_step(new)
 
 
+def without_resteps(model):
+    """``model`` (a copy) without ``reanchor_steps``: the refiner's passes alone."""
+    from dataclasses import replace
+
+    from prismonet.model.prismonet import PriSMONet
+
+    m = PriSMONet(replace(model.cfg, reanchor_steps=0), prior=model.prior)
+    m.load_state_dict(model.state_dict())
+    return m.eval()
+
+
 def test_refiner_snap_and_keep_bar_in_the_model(shipped):
     """``refiner_snap_shape``: after the pass every shape latent is a training code of the prior, and the positions are the
     plain pass's; ``refiner_keep_logit``: a slot whose logit (here 0.5 for all) is at or below the bar is dropped.
@@ -285,6 +296,7 @@ def test_refiner_snap_and_keep_bar_in_the_model(shipped):
     from prismonet.model.refiner_fit import with_refiner
 
     model, b, _ = shipped
+    model = without_resteps(model)  # the steps after refinement would fill the slots the bar drops
     runs = {}
     for name, extra in (("plain", {}), ("snap", {"refiner_snap_shape": True}), ("bar", {"refiner_keep_logit": 0.5})):
         m = with_refiner(model, refiner_keep=True, refiner_shape=True, **extra).eval()
@@ -887,7 +899,7 @@ def test_reanchor_fills_empty_slots_and_leaves_the_others():
 
 def test_reanchor_on_an_unanchored_model_takes_plain_steps_into_empty_slots():
     """An unanchored model's ``reanchor_steps`` are its plain recurrent step on the refined composition: a new slot
-    goes only into a scene with an empty slot (one its keep output dropped), one per step at most, and every slot the
+    goes only into a slot its keep output dropped, one per step at most, and every slot the
     refiner kept keeps its pose and shape exactly (the colour step then recolours every slot against the new
     composition, so texture latents may move)."""
     from dataclasses import replace

@@ -146,11 +146,11 @@ class ModelConfig:
     (``AnchorRule.gray_tol``). None: grey images are read as colour ones, as trained."""
     reanchor_steps: int = 0
     """With a refiner, at inference (beyond the paper): after the refinement passes, up to this many more encoder
-    steps on what the *refined* slots leave unexplained, each into the scene's first empty slot (one the keep output
-    dropped, or never filled), then the refiner's passes on the new slots alone. The encoder stopped on a composition
-    that the refiner then corrected; a part it had given up on may now stand alone. An anchored model's steps are
-    anchored (a scene with no unexplained part left takes none); an unanchored model's are its plain recurrent step,
-    seeing the refined composition. 0: off. Training ignores it."""
+    steps on what the *refined* slots leave unexplained, then the refiner's passes on the new slots alone. The encoder
+    stopped on a composition that the refiner then corrected; a part it had given up on may now stand alone. An
+    anchored model's steps are anchored, each into the scene's first empty slot (a scene with no unexplained part left
+    takes none); an unanchored model's are its plain recurrent step, seeing the refined composition, each into a slot
+    the keep output dropped (a slot a stop rule left empty stays empty). 0: off. Training ignores it."""
     reanchor_keep_logit: float | None = 0.0
     """With ``reanchor_steps`` and ``refiner_keep``: a re-anchored slot is dropped where its keep logit is at or below
     this (the encoder's own slots: at or below 0). The keep output was fitted on the encoder's slots, and drops most

@@ -436,8 +436,9 @@ class PriSMONet(nn.Module):
     def reanchor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                  ground_z: torch.Tensor) -> ModelOutput:
         """``cfg.reanchor_steps`` more encoder steps after refinement (see ``ModelConfig.reanchor_steps``), anchored
-        where the model is: each step's slot goes into its scene's first empty slot; a scene with no empty slot (or,
-        anchored, nothing left unexplained) takes no step. Then the refiner's passes on the new slots alone."""
+        where the model is: each step's slot goes into its scene's first empty slot (unanchored: the first its keep
+        output dropped); a scene with none (or, anchored, nothing left unexplained) takes no step. Then the refiner's
+        passes on the new slots alone."""
         out, added = self.reanchor_slots(out, image, K, T_world_cam, ground_z)
         if not added.any():
             return out
@@ -464,11 +465,14 @@ class PriSMONet(nn.Module):
         cur_mask = shown.any(1, keepdim=True).to(image.dtype)
         anchored = self.cfg.anchor
         rule, failed = (self.anchor_rule(), torch.zeros(B, H, W, dtype=torch.bool, device=dev)) if anchored else (None, None)
+        # where a step may go: any empty slot of an anchored model (the anchors say whether anything is left); an
+        # unanchored model's slots the keep output dropped, not those the encoder left empty (a stop rule's)
+        room = ~active if anchored or out.dropped is None else out.dropped & ~active
         added = torch.zeros(B, N, dtype=torch.bool, device=dev)
         rows = torch.arange(B, device=dev)
         for _ in range(self.cfg.reanchor_steps):
             anchors = find_anchors(image, cur_image, rule, failed) if anchored else None
-            live = ~active.all(1) if anchors is None else anchors.found & ~active.all(1)
+            live = room.any(1) if anchors is None else anchors.found & room.any(1)
             if not live.any():
                 break
             region, uv = (None, None) if anchors is None else (anchors.region, anchors.uv)
@@ -483,21 +487,23 @@ class PriSMONet(nn.Module):
             cur_mask = torch.maximum(cur_mask, m.to(image.dtype))
             if anchors is not None:
                 failed |= rule.failed(anchors, image, cur_image)
-            k = (~active).to(torch.int8).argmax(1)  # each scene's first empty slot
+            k = room.to(torch.int8).argmax(1)  # each scene's first slot with room
             b, k = rows[live], k[live]
             for name in ("z_sh", "z_tex", "position", "cos_sin", "scale"):
                 field = getattr(params, name).clone()
                 field[b, k] = getattr(slot, name)[b, 0]
                 setattr(params, name, field)
             active[b, k] = True
+            room[b, k] = False
             added[b, k] = True
         if not added.any():
             return out, added
         params.active = active
         obj = self._render_changed(out, params, added, K, T_world_cam, H, W)
         comp = composite(obj.depth, obj.mask, obj.color, out.latents.bg_color, out.bg_depth)
+        dropped = None if out.dropped is None else out.dropped & ~active
         return ModelOutput(SceneLatents(params, out.latents.bg_color), comp, obj.depth, obj.mask, obj.color, out.bg_depth,
-                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, out.dropped), added
+                           obj.soft_mask, out.presence, out.slot_steps, out.keep_logit, obj, dropped), added
 
     def recolor(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
         """``out`` with every active slot's texture latent moved by the colour step (``cfg.color_step``,

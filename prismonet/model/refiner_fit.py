@@ -128,13 +128,15 @@ def with_refiner(model, passes: int = 1, **fields):
     """A copy of a trained scene model with a fresh (identity) refiner of ``passes`` passes; the
     encoder, background encoder and texture field keep their weights. ``fields``: other ``ModelConfig``
     refiner settings (``refiner_glimpse``, ``refiner_coords``, ``refiner_channels``, ``refiner_fc``, ``refiner_shape``,
-    ``refiner_shape_codes``, ``refiner_keep``); a refiner the model already has is replaced."""
+    ``refiner_shape_codes``, ``refiner_keep``); a refiner the model already has is replaced. With no passes the steps
+    after refinement (``reanchor_steps``), which need them, are off too."""
     from prismonet.model.io import rebuilt
 
     bad = [k for k in fields if not k.startswith("refiner_")]
     if bad:
         raise ValueError(f"with_refiner: only refiner settings may change, got {bad}")
-    return rebuilt(model, "refiner.", refine_passes=passes, **fields)
+    steps = {} if passes else {"reanchor_steps": 0}
+    return rebuilt(model, "refiner.", refine_passes=passes, **steps, **fields)
 
 
 def with_shape_step(model):
