@@ -387,20 +387,19 @@ class PriSMONet(nn.Module):
         other slot's render is ``out``'s. Each slot is rendered on its own, so this is the render of every slot at the
         cost of the changed ones; with ``changed`` ``None``, or ``out`` without its hits, every slot is rendered."""
         settings = self.render_settings()
-        soft_out = out.obj_soft_mask is not None
-        if changed is None or out.render is None or out.obj_color is None or soft_out != (settings.soft_mask_tau > 0):
+        if changed is None or out.render is None or (out.obj_soft_mask is not None) != (settings.soft_mask_tau > 0):
             return render_objects(self.sdf_fn, self.color_fn, params, K, T_world_cam, H, W, settings)
         active = params.active if params.active is not None else torch.ones_like(changed)
         obj = render_objects(self.sdf_fn, self.color_fn, replace(params, active=changed & active), K, T_world_cam, H, W,
                              settings)
-        c = changed[:, :, None, None]
-        soft = None if obj.soft_mask is None else torch.where(c, obj.soft_mask, out.obj_soft_mask)
+        soft = obj.soft_mask
+        if soft is not None:
+            soft = torch.where(changed[:, :, None, None], soft, out.obj_soft_mask)
         r = out.render
         old = (~changed).reshape(-1)[r.hit_slot]
         hits = [torch.cat([h[old], h_new]) for h, h_new in ((r.hit_slot, obj.hit_slot), (r.hit_pix, obj.hit_pix),
                                                              (r.hit_x_obj, obj.hit_x_obj))]
-        return ObjectRender(torch.where(c, obj.depth, out.obj_depth), torch.where(c, obj.mask, out.obj_mask),
-                            torch.where(c[:, :, None], obj.color, out.obj_color), *hits, soft_mask=soft)
+        return ObjectRender(*_merged(changed, obj, out), *hits, soft_mask=soft)
 
     @torch.no_grad()
     def rescue(self, out: ModelOutput, image: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> ModelOutput:
@@ -413,10 +412,7 @@ class PriSMONet(nn.Module):
         H, W = image.shape[-2:]
         cand = out.dropped
         obj = render_objects(self.sdf_fn, self.color_fn, replace(p, active=cand), K, T_world_cam, H, W, self.render_settings())
-        c = cand[:, :, None, None]
-        depth = torch.where(c, obj.depth, out.obj_depth)
-        mask = torch.where(c, obj.mask, out.obj_mask)
-        color = torch.where(c[:, :, None], obj.color, out.obj_color)
+        depth, mask, color = _merged(cand, obj, out)
         kept = rescue_keep(StopRule(min_gain=self.cfg.refiner_rescue_px), depth, mask, color, out.latents.bg_color,
                            out.bg_depth, image, None, p.active, cand)
         if torch.equal(kept, p.active):
@@ -548,6 +544,13 @@ class PriSMONet(nn.Module):
                                     T_world_cam, ground_z)
         params.active = torch.zeros(image.shape[0], 1, dtype=torch.bool, device=image.device)
         return params
+
+
+def _merged(changed: torch.Tensor, obj: ObjectRender, out: ModelOutput) -> tuple[torch.Tensor, ...]:
+    """Per-object depth, mask and colour: ``obj``'s at the slots ``changed (B, N)`` bool, ``out``'s at the others."""
+    c = changed[:, :, None, None]
+    return (torch.where(c, obj.depth, out.obj_depth), torch.where(c, obj.mask, out.obj_mask),
+            torch.where(c[:, :, None], obj.color, out.obj_color))
 
 
 def _cat_slots(slots: list[SceneParams]) -> SceneParams:
